@@ -1,0 +1,85 @@
+"""The `c4d` command: one entry point, a subcommand per job.
+
+Each subcommand lives in the package that owns the work, in a module exposing
+`add_arguments(parser)` and `run(args) -> int | None`. Only the chosen subcommand's module is
+imported, so `c4d --help` is instant and a broken optional dependency only affects its command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+import traceback
+
+from c4d import __version__
+from c4d.errors import UserError
+
+# name -> (module, one-line help), in the order of the data flow.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "datagen": ("datagen.cli", "generate MOVi-style synthetic videos with exact labels as shards"),
+    "inspect": ("c4d.inspect.cli", "report, pictures and validation of shard sets and reconstructions"),
+    "train": ("dynpt.cli_train", "train the dynamic-aware point tracker (DynPT) on shards"),
+    "eval": ("dynpt.cli_eval", "evaluate a tracker checkpoint: D-ACC and TAP-Vid metrics"),
+    "track": ("dynpt.cli_track", "track points in a video and write tracks plus an overlay video"),
+    "run": ("c4d_pipeline.cli_run", "reconstruct a monocular video with C4D (depth, poses, masks, 3D tracks)"),
+    "eval-recon": ("c4d_pipeline.cli_eval_recon", "score a reconstruction against ground truth"),
+    "demo": ("c4d.demo", "the whole chain on a small generated dataset, in minutes on a CPU"),
+}
+
+log = logging.getLogger("c4d")
+
+
+def build_parser(chosen: str | None) -> argparse.ArgumentParser:
+    """The top-level parser; only the `chosen` subcommand gets its full argument list."""
+    parser = argparse.ArgumentParser(
+        prog="c4d",
+        description="Dynamic-aware point tracking and C4D reconstruction. "
+        "Run `c4d SUBCOMMAND --help` for the options of one subcommand.",
+    )
+    parser.add_argument("--version", action="version", version=f"c4d {__version__}")
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="debug logging and full tracebacks"
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    for name, (module_name, help_text) in SUBCOMMANDS.items():
+        sub = subparsers.add_parser(name, help=help_text, description=help_text)
+        sub.add_argument(
+            "-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+            help="debug logging and full tracebacks",
+        )
+        if name == chosen:
+            importlib.import_module(module_name).add_arguments(sub)
+    return parser
+
+
+def _chosen_subcommand(argv: list[str]) -> str | None:
+    return next((a for a in argv if a in SUBCOMMANDS), None)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    verbose = "-v" in argv or "--verbose" in argv
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose else "%(message)s",
+        datefmt="%H:%M:%S",
+    )
+    try:
+        chosen = _chosen_subcommand(argv)
+        args = build_parser(chosen).parse_args(argv)
+        module = importlib.import_module(SUBCOMMANDS[args.command][0])
+        return int(module.run(args) or 0)
+    except UserError as exc:
+        if verbose:
+            traceback.print_exc()
+        print(f"c4d: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("c4d: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

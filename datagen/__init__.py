@@ -1,0 +1,10 @@
+"""datagen: Kubric-style synthetic videos with exact labels, on pybullet and pyrender.
+
+Sample a scene, simulate it, render it, annotate it, write it. Reading gives `Scene` objects.
+This package never imports torch, dynpt or c4d_pipeline.
+"""
+
+from datagen.scene import Scene
+
+__version__ = "0.1.0"
+__all__ = ["Scene"]

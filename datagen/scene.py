@@ -1,0 +1,51 @@
+"""`Scene`: one labelled video, the unit that crosses package borders (see docs/FORMAT.md).
+
+Shapes: T frames, H x W pixels, K objects, N tracks. Conventions (OpenCV camera, camera-to-world
+poses, z-depth, pixel centres at integer coordinates, flow as (dx, dy)) are those of the
+project's interface contract. A field a preset cannot produce is `None`, never silently wrong.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class Scene:
+    rgb: np.ndarray  # uint8 (T,H,W,3), motion-blurred where the preset blurs
+    depth: np.ndarray | None  # float32 (T,H,W) z-depth at the frame time
+    segmentation: np.ndarray | None  # int32 (T,H,W): 0 background, k = objects[k-1]
+    flow_fwd: np.ndarray | None  # float32 (T,H,W,2) (dx,dy) from t to t+1; last frame zero
+    flow_bwd: np.ndarray | None  # float32 (T,H,W,2) (dx,dy) from t to t-1; first frame zero
+    intrinsics: np.ndarray  # float32 (T,3,3) K in pixels
+    cam_to_world: np.ndarray  # float32 (T,4,4) OpenCV camera-to-world
+    object_to_world: np.ndarray | None  # float32 (K,T,4,4)
+    objects: list[dict[str, Any]]  # K dicts: asset id, scale, mass, tossed, ...
+    tracks: np.ndarray  # float32 (N,T,2) (x,y) pixels
+    occluded: np.ndarray  # bool (N,T)
+    query_frame: np.ndarray  # int32 (N,) frame where the track is sampled (visible there)
+    track_object: np.ndarray  # int32 (N,) 0 background, k = objects[k-1]
+    tracks_world: np.ndarray | None  # float32 (N,T,3) world position of the tracked point
+    displacement: np.ndarray | None  # float32 (N,T) world distance moved since t-1 (t=0: to t+1)
+    moving: np.ndarray | None  # bool (N,T) displacement > meta['mobility_threshold']
+    meta: dict[str, Any] = field(default_factory=dict)  # preset, seed, index, fps, version, ...
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(H, W) in pixels."""
+        return int(self.rgb.shape[1]), int(self.rgb.shape[2])
+
+    @property
+    def num_tracks(self) -> int:
+        return int(self.tracks.shape[0])
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in fields(cls)]
