@@ -75,7 +75,7 @@ def _check_against(schema: Any, update: Any, prefix: str, origin: str) -> None:
         if isinstance(schema, (dict, DictConfig)):
             raise UserError(f"{origin}: `{prefix}` is a section; set one of its keys instead")
         return
-    expected = type(schema.to_container() if isinstance(schema, ListConfig) else schema)
+    expected = list if isinstance(schema, (list, ListConfig)) else type(schema)
     numeric = (int, float)
     if expected is float and isinstance(update, int) and not isinstance(update, bool):
         return

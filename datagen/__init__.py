@@ -5,6 +5,7 @@ This package never imports torch, dynpt or c4d_pipeline.
 """
 
 from datagen.scene import Scene
+from datagen.shards import read_scenes
 
 __version__ = "0.1.0"
-__all__ = ["Scene"]
+__all__ = ["Scene", "read_scenes"]

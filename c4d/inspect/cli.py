@@ -1,0 +1,117 @@
+"""`c4d inspect SOURCE --out DIR`: a browsable report (index.html) of a shard set or a reconstruction.
+
+SOURCE is a shard set (a directory of shards, a .tar, a glob) or a directory written by `c4d run`;
+which one is detected from its files. `--check` validates every scene (or every reconstruction
+file) and exits non-zero if anything is wrong.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+from pathlib import Path
+
+from c4d.errors import UserError
+
+log = logging.getLogger(__name__)
+
+VIDEO_FORMATS = (".webm", ".mp4", ".gif", ".avi")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("source", metavar="SOURCE",
+                        help="shard set (directory of .tar shards, one .tar, or a quoted glob) "
+                             "or a reconstruction directory written by `c4d run`")
+    parser.add_argument("--out", type=Path,
+                        help="folder for the report (index.html, plots, videos); "
+                             "optional with --check, which then also writes check.json there")
+    parser.add_argument("--split", help="read only shards of this split (train, val, test)")
+    parser.add_argument("--scene", type=int, metavar="I",
+                        help="detail report of the I-th scene (0-based, in reading order)")
+    parser.add_argument("--num-samples", type=int, default=3, metavar="K",
+                        help="scenes shown with a contact sheet and a video (default 3)")
+    parser.add_argument("--check", action="store_true",
+                        help="decode and validate every scene (or reconstruction file), list every "
+                             "problem with its shard and scene key, exit 1 if there is any")
+    parser.add_argument("--gt", metavar="SOURCE",
+                        help="reconstructions: shard set holding the ground truth of the video")
+    parser.add_argument("--scene-index", type=int, default=0, metavar="I",
+                        help="reconstructions: which scene of --gt (0-based, reading order)")
+    parser.add_argument("--video-format", choices=VIDEO_FORMATS, default=".webm",
+                        help="container of the videos (.webm plays in browsers; default)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_reconstruction(args) -> int:
+    from c4d.inspect import recon_report
+
+    if args.check and args.out is None:
+        recon = recon_report.load_reconstruction(args.source)
+        for problem in recon.problems:
+            print(f"{args.source}: {problem}")
+        print(f"{args.source}: {len(recon.problems)} problems")
+        return 1 if recon.problems else 0
+    if args.out is None:
+        raise UserError("--out DIR is required to write a report (or use --check alone)")
+    gt = None
+    if args.gt:
+        from c4d_pipeline.cli_eval_recon import pick_scene
+
+        gt = pick_scene(args.gt, args.scene_index)
+    summary = recon_report.build_recon_report(args.source, args.out, gt, args.gt or "",
+                                              video_ext=args.video_format)
+    for problem in summary["problems"]:
+        log.warning("%s: %s", args.source, problem)
+    log.info("report written to %s", args.out / "index.html")
+    return 1 if args.check and summary["problems"] else 0
+
+
+def _run_check(args) -> int:
+    from c4d.inspect.dataset_report import check_dataset
+
+    result = check_dataset(args.source, args.split, progress=not args.no_progress)
+    for shard, key, problem in result.problems:
+        print(f"{shard} {key}: {problem}")
+    print(f"checked {result.num_samples} scenes: {result.num_bad_samples} with problems "
+          f"({len(result.problems)} problems)")
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        report = {"source": args.source, "scenes": result.num_samples,
+                  "problems": [{"shard": s, "key": k, "problem": p} for s, k, p in result.problems]}
+        tmp = args.out / f".check.json.{os.getpid()}"
+        tmp.write_text(json.dumps(report, indent=2) + "\n")
+        os.replace(tmp, args.out / "check.json")
+    return 1 if result.problems else 0
+
+
+def run(args) -> int:
+    from c4d.inspect.recon_report import is_reconstruction
+
+    if args.num_samples < 0:
+        raise UserError(f"--num-samples must be >= 0, got {args.num_samples}")
+    if is_reconstruction(args.source):
+        return _run_reconstruction(args)
+    if args.check:
+        return _run_check(args)
+    if args.out is None:
+        raise UserError("--out DIR is required to write a report (or use --check alone)")
+    from c4d.inspect import dataset_report
+
+    if args.scene is not None:
+        page = dataset_report.build_scene_report(args.source, args.out, args.scene, args.split,
+                                                 video_ext=args.video_format)
+        log.info("scene report written to %s", page)
+        return 0
+    summary = dataset_report.build_dataset_report(
+        args.source, args.out, args.num_samples, args.split, video_ext=args.video_format,
+        progress=not args.no_progress)
+    counts = summary["counts"]
+    log.info("%d scenes, %d frames, %d objects, %d tracks; report written to %s",
+             counts["scenes"], counts["frames"], counts["objects"], counts["tracks"],
+             args.out / "index.html")
+    if counts["unreadable"]:
+        log.warning("%d samples could not be read; run `c4d inspect %s --check` for details",
+                    counts["unreadable"], args.source)
+    return 0

@@ -1,0 +1,438 @@
+"""Reports on a shard set: statistics, distributions, pictures and videos of scenes, validation.
+
+Three jobs, each streaming scene by scene (memory stays at one scene):
+- `build_dataset_report`: counts and distributions (objects per scene, visible and moving
+  fractions, camera speed, blur, track lengths) as plots, plus a contact sheet and a video of the
+  first `num_samples` scenes showing RGB with tracks | depth | segmentation | flow, tied together
+  by `index.html`.
+- `build_scene_report`: one scene in detail (every frame, object table, per-track curves).
+- `check_dataset`: decode every sample and list every problem (corrupt member, truncated shard,
+  wrong shape or dtype, non-finite values, ids out of range, occluded at query, mobility label
+  disagreeing with the displacement), naming shard and scene key, without stopping at the first.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from c4d.errors import UserError
+from c4d.inspect import html, plots
+from datagen import shards, visualize
+from datagen.scene import Scene
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MOBILITY_THRESHOLD = 0.01  # the contract's default, used when meta does not say
+MIN_PANEL_HEIGHT = 192  # small scenes are scaled up (nearest) so pictures stay legible
+SHEET_FRAMES = 4  # frames per scene in a contact sheet
+ROTATION_TOLERANCE = 1e-3  # |R^T R - I| of a camera pose
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Sample:
+    """One sample of a shard set: where it is, and its Scene or the reason it could not be read."""
+
+    shard: str
+    key: str
+    scene: Scene | None
+    error: str | None = None
+
+
+def iter_dataset(source, split: str | None = None, skip_errors: bool = True) -> Iterator[Sample]:
+    """Every sample of `source` (anything `datagen.read_scenes` accepts), in reading order.
+
+    A corrupt sample or a truncated shard yields a `Sample` with `error` set and reading goes on
+    with the next sample or shard; with `skip_errors=False` such samples are not yielded at all.
+    """
+    for shard in shards.list_shards(source, split):
+        try:
+            for raw in shards.iter_samples(shard):
+                try:
+                    yield Sample(str(shard), raw["__key__"], shards.decode_scene(raw))
+                except UserError as exc:
+                    if skip_errors:
+                        yield Sample(str(shard), raw["__key__"], None, str(exc))
+        except UserError as exc:  # the tar itself is truncated or corrupt
+            if skip_errors:
+                yield Sample(str(shard), "?", None, str(exc))
+
+
+# --------------------------------------------------------------------------------------------
+# Validation
+# --------------------------------------------------------------------------------------------
+
+
+def _expected_layout(scene: Scene) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
+    """field -> (dtype, shape) that the contract requires, given T, H, W, K and N of the scene."""
+    t, h, w = scene.rgb.shape[:3]
+    k = len(scene.objects) if scene.objects is not None else None
+    n = scene.tracks.shape[0] if isinstance(scene.tracks, np.ndarray) else None
+    f32, i32, boolean = np.dtype(np.float32), np.dtype(np.int32), np.dtype(np.bool_)
+    layout = {
+        "rgb": (np.dtype(np.uint8), (t, h, w, 3)),
+        "depth": (f32, (t, h, w)),
+        "segmentation": (i32, (t, h, w)),
+        "flow_fwd": (f32, (t, h, w, 2)),
+        "flow_bwd": (f32, (t, h, w, 2)),
+        "intrinsics": (f32, (t, 3, 3)),
+        "cam_to_world": (f32, (t, 4, 4)),
+        "tracks": (f32, (n, t, 2)),
+    }
+    if k is not None:
+        layout["object_to_world"] = (f32, (k, t, 4, 4))
+    if n is not None:
+        layout |= {
+            "occluded": (boolean, (n, t)),
+            "query_frame": (i32, (n,)),
+            "track_object": (i32, (n,)),
+            "tracks_world": (f32, (n, t, 3)),
+            "displacement": (f32, (n, t)),
+            "moving": (boolean, (n, t)),
+        }
+    return layout
+
+
+def validate_scene(scene: Scene) -> list[str]:
+    """Every way `scene` breaks the contract (INTERFACES.md), as short sentences; [] if none."""
+    required = ("rgb", "intrinsics", "cam_to_world", "objects", "tracks", "occluded",
+                "query_frame", "track_object")
+    missing = [name for name in required if getattr(scene, name) is None]
+    if missing:
+        return [f"required fields are missing: {', '.join(missing)}"]
+    if not isinstance(scene.rgb, np.ndarray) or scene.rgb.ndim != 4:
+        return [f"rgb must be (T,H,W,3), got {getattr(scene.rgb, 'shape', type(scene.rgb))}"]
+
+    problems = []
+    wrong_layout = set()
+    for name, (dtype, shape) in _expected_layout(scene).items():
+        value = getattr(scene, name)
+        if value is None:
+            continue
+        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != shape:
+            got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value).__name__
+            problems.append(f"{name} is {got}, expected {dtype} {shape}")
+            wrong_layout.add(name)
+    ok = {name for name in Scene.field_names() if getattr(scene, name) is not None} - wrong_layout
+
+    for name in ok & {"depth", "flow_fwd", "flow_bwd", "intrinsics", "cam_to_world",
+                      "object_to_world", "tracks", "tracks_world", "displacement"}:
+        bad = int((~np.isfinite(getattr(scene, name))).sum())
+        if bad:
+            problems.append(f"{name} has {bad} NaN or infinite values")
+    num_frames, num_objects = scene.num_frames, len(scene.objects)
+    if "depth" in ok and (scene.depth[np.isfinite(scene.depth)] <= 0).any():
+        problems.append("depth has values <= 0")
+    if "segmentation" in ok:
+        low, high = int(scene.segmentation.min()), int(scene.segmentation.max())
+        if low < 0 or high > num_objects:
+            problems.append(f"segmentation ids span [{low}, {high}], outside [0, {num_objects}]")
+    if "flow_fwd" in ok and np.abs(scene.flow_fwd[-1]).max() > 0:
+        problems.append("flow_fwd of the last frame is not zero (it has no next frame)")
+    if "flow_bwd" in ok and np.abs(scene.flow_bwd[0]).max() > 0:
+        problems.append("flow_bwd of the first frame is not zero (it has no previous frame)")
+    if "cam_to_world" in ok and np.isfinite(scene.cam_to_world).all():
+        rot = scene.cam_to_world[:, :3, :3].astype(np.float64)
+        error = np.abs(np.swapaxes(rot, 1, 2) @ rot - np.eye(3)).max()
+        if error > ROTATION_TOLERANCE or np.abs(scene.cam_to_world[:, 3] - [0, 0, 0, 1]).max() > 0:
+            problems.append(f"cam_to_world is not rigid (|R^T R - I| = {error:.2g})")
+    if "intrinsics" in ok and (scene.intrinsics[:, [0, 1], [0, 1]] <= 0).any():
+        problems.append("intrinsics have a focal length <= 0")
+    if "track_object" in ok and scene.num_tracks:
+        low, high = int(scene.track_object.min()), int(scene.track_object.max())
+        if low < 0 or high > num_objects:
+            problems.append(f"track_object spans [{low}, {high}], outside [0, {num_objects}]")
+    if {"query_frame", "occluded"} <= ok and scene.num_tracks:
+        queries = scene.query_frame
+        if queries.min() < 0 or queries.max() >= num_frames:
+            problems.append(f"query_frame spans [{queries.min()}, {queries.max()}], outside [0, {num_frames - 1}]")
+        else:
+            hidden = int(scene.occluded[np.arange(scene.num_tracks), queries].sum())
+            if hidden:
+                problems.append(f"{hidden} tracks are occluded at their query frame")
+    if {"moving", "displacement"} <= ok:
+        threshold = float(scene.meta.get("mobility_threshold", DEFAULT_MOBILITY_THRESHOLD))
+        disagree = int((scene.moving != (scene.displacement > threshold)).sum())
+        if disagree:
+            problems.append(f"moving disagrees with displacement > {threshold} at {disagree} points")
+    if "displacement" in ok and (scene.displacement < 0).any():
+        problems.append("displacement has negative values")
+    return problems
+
+
+@dataclass
+class CheckResult:
+    """Outcome of `check_dataset`: number of samples read and every problem found."""
+
+    num_samples: int
+    problems: list[tuple[str, str, str]]  # (shard, scene key, problem)
+
+    @property
+    def num_bad_samples(self) -> int:
+        return len({(shard, key) for shard, key, _ in self.problems})
+
+
+def check_dataset(source, split: str | None = None, progress: bool = True) -> CheckResult:
+    """Decode and validate every sample of `source`; never stops at the first problem."""
+    problems: list[tuple[str, str, str]] = []
+    count = 0
+    for sample in tqdm(iter_dataset(source, split), desc="check", unit="scene", disable=not progress):
+        count += 1
+        if sample.error is not None:
+            problems.append((sample.shard, sample.key, sample.error))
+            continue
+        problems += [(sample.shard, sample.key, p) for p in validate_scene(sample.scene)]
+    return CheckResult(count, problems)
+
+
+# --------------------------------------------------------------------------------------------
+# Statistics
+# --------------------------------------------------------------------------------------------
+
+# Statistic names -> (what one value is, unit) for plots and the summary.
+STATISTICS = {
+    "objects_per_scene": ("objects per scene", "count"),
+    "tracks_per_scene": ("tracks per scene", "count"),
+    "visible_fraction_per_track": ("visible fraction per track", "fraction of frames"),
+    "moving_fraction_per_track": ("moving fraction per track", "fraction of frames"),
+    "moving_fraction_per_frame": ("moving fraction of tracks per frame", "fraction of tracks"),
+    "camera_speed": ("mean camera speed per scene", "units / frame"),
+    "blur_shutter": ("motion blur: shutter open per scene", "frames"),
+    "track_length": ("track length (visible frames)", "frames"),
+}
+
+
+def blur_strength(meta: dict) -> float | None:
+    """Shutter time in frames from a scene's meta (0 = sharp), or None when not recorded."""
+    for key in ("shutter", "shutter_frames", "motion_blur"):
+        value = meta.get(key)
+        if isinstance(value, dict):
+            value = value.get("shutter")
+        if isinstance(value, (int, float)):
+            return float(value)
+    return None
+
+
+def scene_statistics(scene: Scene) -> dict[str, np.ndarray]:
+    """The values one scene contributes to each distribution of `STATISTICS` (1-D arrays)."""
+    visible = ~scene.occluded  # (N,T)
+    positions = scene.cam_to_world[:, :3, 3].astype(np.float64)  # (T,3)
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=-1)  # (T-1,)
+    blur = blur_strength(scene.meta)
+    stats = {
+        "objects_per_scene": np.array([len(scene.objects)]),
+        "tracks_per_scene": np.array([scene.num_tracks]),
+        "visible_fraction_per_track": visible.mean(axis=1),
+        "track_length": visible.sum(axis=1),
+        "camera_speed": np.array([steps.mean() if steps.size else 0.0]),
+        "blur_shutter": np.array([] if blur is None else [blur]),
+    }
+    if scene.moving is not None:
+        stats["moving_fraction_per_track"] = scene.moving.mean(axis=1)
+        stats["moving_fraction_per_frame"] = scene.moving.mean(axis=0) if scene.num_tracks else np.zeros(0)
+    return stats
+
+
+def summarise(values: np.ndarray) -> dict[str, float]:
+    """count, mean, min, median, max of a 1-D array (empty: count only)."""
+    if values.size == 0:
+        return {"count": 0}
+    return {"count": int(values.size), "mean": float(values.mean()), "min": float(values.min()),
+            "median": float(np.median(values)), "max": float(values.max())}
+
+
+# --------------------------------------------------------------------------------------------
+# Pictures of a scene
+# --------------------------------------------------------------------------------------------
+
+
+def scene_panels(scene: Scene, show_occluded: bool = True) -> tuple[list[np.ndarray], list[str]]:
+    """RGB with tracks, depth, segmentation, forward flow as RGB uint8 videos (T,H',W',3).
+
+    Small scenes are scaled up by an integer factor so the pictures stay legible; tracks are
+    moved to the scaled pixel grid (centres at integers: x' = (x + 0.5) f - 0.5).
+    """
+    factor = visualize.display_scale(scene.rgb.shape[1], MIN_PANEL_HEIGHT)
+    tracks = (scene.tracks.transpose(1, 0, 2) + 0.5) * factor - 0.5  # (T,N,2)
+    moving = None if scene.moving is None else scene.moving.T  # (T,N)
+    radius = max(1.5, 0.007 * factor * max(scene.image_size))
+    panels = [visualize.draw_tracks(visualize.upscale(scene.rgb, factor), tracks, ~scene.occluded.T, moving,
+                                    show_occluded=show_occluded, radius=radius, legend=moving is not None)]
+    labels = ["rgb + tracks"]
+    for name, colorize in (("depth", visualize.colorize_depth),
+                           ("segmentation", visualize.colorize_segmentation),
+                           ("flow_fwd", visualize.colorize_flow)):
+        value = getattr(scene, name)
+        if value is not None:
+            panels.append(visualize.upscale(colorize(value), factor))
+            labels.append(name)
+    return panels, labels
+
+
+def scene_video(scene: Scene) -> np.ndarray:
+    """All panels side by side: RGB uint8 (T,H',W',3)."""
+    panels, labels = scene_panels(scene)
+    return visualize.side_by_side(panels, labels)
+
+
+def scene_contact_sheet(scene: Scene, num_frames: int = SHEET_FRAMES) -> np.ndarray:
+    """`num_frames` evenly spaced frames (rows) of all panels (columns): one RGB uint8 image."""
+    panels, labels = scene_panels(scene)
+    times = np.unique(np.linspace(0, scene.num_frames - 1, num_frames).round().astype(int))
+    rows = [visualize.side_by_side([p[t] for p in panels], [f"{labels[0]} t={t}"] + labels[1:])
+            for t in times]
+    return visualize.contact_sheet(rows, columns=1)
+
+
+# --------------------------------------------------------------------------------------------
+# Reports
+# --------------------------------------------------------------------------------------------
+
+
+def _write_scene_pictures(scene: Scene, folder: Path, video_ext: str) -> tuple[Path, Path]:
+    fps = float(scene.meta.get("fps", 12))
+    sheet = visualize.write_image(folder / "sheet.png", scene_contact_sheet(scene))
+    video = visualize.write_video(folder / f"video{video_ext}", scene_video(scene), fps)
+    return sheet, video
+
+
+def build_dataset_report(source, out: str | Path, num_samples: int = 3, split: str | None = None,
+                         video_ext: str = ".webm", progress: bool = True) -> dict:
+    """Write statistics, plots, sample pictures and `index.html` of a shard set into `out`.
+
+    Returns the summary (also written to `out/summary.json`). Unreadable samples are skipped,
+    counted and listed; `check_dataset` explains them in full.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    values: dict[str, list[np.ndarray]] = {name: [] for name in STATISTICS}
+    counts = {"scenes": 0, "frames": 0, "objects": 0, "tracks": 0, "unreadable": 0}
+    presets: dict[str, int] = {}
+    samples, unreadable = [], []
+    for sample in tqdm(iter_dataset(source, split), desc="inspect", unit="scene", disable=not progress):
+        if sample.scene is None:
+            counts["unreadable"] += 1
+            unreadable.append((sample.shard, sample.key, sample.error))
+            continue
+        scene = sample.scene
+        counts["scenes"] += 1
+        counts["frames"] += scene.num_frames
+        counts["objects"] += len(scene.objects)
+        counts["tracks"] += scene.num_tracks
+        preset = str(scene.meta.get("preset", "?"))
+        presets[preset] = presets.get(preset, 0) + 1
+        for name, value in scene_statistics(scene).items():
+            values[name].append(np.asarray(value, np.float64))
+        if len(samples) < num_samples:
+            folder = out / "scenes" / sample.key
+            sheet, video = _write_scene_pictures(scene, folder, video_ext)
+            samples.append({"key": sample.key, "shard": sample.shard, "sheet": sheet, "video": video,
+                            "frames": scene.num_frames, "size": scene.image_size,
+                            "objects": len(scene.objects), "tracks": scene.num_tracks})
+    if counts["scenes"] == 0:
+        raise UserError(f"no readable scene in {source}; run `c4d inspect {source} --check --out DIR` "
+                        "to see why, and regenerate the shards")
+
+    merged = {name: np.concatenate(v) if v else np.zeros(0) for name, v in values.items()}
+    plot_path = plots.histogram_grid(
+        out / "distributions.png",
+        {STATISTICS[name][0]: (merged[name], STATISTICS[name][1]) for name in STATISTICS},
+    )
+    summary = {
+        "source": str(source),
+        "counts": counts,
+        "presets": presets,
+        "statistics": {name: summarise(v) for name, v in merged.items()},
+        "samples": [{k: str(v) if isinstance(v, Path) else v for k, v in s.items()} for s in samples],
+        "unreadable": [list(u) for u in unreadable],
+    }
+    shards.write_json_atomic(out / "summary.json", summary)
+    _write_dataset_page(out, summary, plot_path, samples, unreadable)
+    return summary
+
+
+def _write_dataset_page(out: Path, summary: dict, plot_path: Path, samples: list[dict],
+                        unreadable: list) -> Path:
+    counts = summary["counts"]
+    fragments = [
+        html.text(f"Source: {summary['source']}"),
+        html.table([[k, v] for k, v in counts.items()] + [["presets", json.dumps(summary["presets"])]],
+                   header=["count", "value"]),
+    ]
+    if unreadable:
+        fragments.append(html.text(f"{len(unreadable)} samples could not be read and are left out; "
+                                   "run `c4d inspect SOURCE --check` for details.", "bad"))
+    fragments += [
+        html.heading("Distributions"),
+        html.image(plot_path, out),
+        html.table([[STATISTICS[name][0], STATISTICS[name][1], *(s.get(k, "") for k in
+                     ("count", "mean", "min", "median", "max"))]
+                    for name, s in summary["statistics"].items()],
+                   header=["statistic", "unit", "count", "mean", "min", "median", "max"]),
+        html.heading("Sample scenes"),
+        html.text("Tracks on RGB: blue = static, red = moving in the world (a probability blends "
+                  "the two); filled = visible, hollow ring = occluded.", "note"),
+    ]
+    for s in samples:
+        fragments += [
+            f"<h3>{s['key']}</h3>",
+            html.text(f"{s['shard']}: {s['frames']} frames of {s['size'][0]}x{s['size'][1]}, "
+                      f"{s['objects']} objects, {s['tracks']} tracks", "note"),
+            html.video(s["video"], out),
+            html.image(s["sheet"], out),
+        ]
+    return html.write_page(out / "index.html", "Dataset report", fragments)
+
+
+def build_scene_report(source, out: str | Path, index: int, split: str | None = None,
+                       video_ext: str = ".webm") -> Path:
+    """Detail page of the `index`-th scene of `source` (reading order): every frame, objects,
+    per-track curves and its validation. Returns the path of the page."""
+    if index < 0:
+        raise UserError(f"--scene must be >= 0, got {index}")
+    sample = None
+    for i, candidate in enumerate(iter_dataset(source, split)):
+        if i == index:
+            sample = candidate
+            break
+    if sample is None:
+        raise UserError(f"{source} has fewer than {index + 1} scenes; choose --scene below that")
+    if sample.scene is None:
+        raise UserError(f"scene {index} ({sample.key} in {sample.shard}) cannot be read: {sample.error}")
+    scene = sample.scene
+    out = Path(out)
+    sheet, video = _write_scene_pictures(scene, out, video_ext)
+    all_frames = visualize.write_image(out / "all_frames.png",
+                                       scene_contact_sheet(scene, num_frames=scene.num_frames))
+    curves = plots.track_curves(out / "tracks.png", scene)
+    problems = validate_scene(scene)
+    stats = {name: summarise(np.asarray(v, np.float64)) for name, v in scene_statistics(scene).items()}
+
+    fragments = [
+        html.text(f"Scene {index}: key {sample.key} in {sample.shard}"),
+        html.text("valid: no problem found" if not problems else "problems: " + "; ".join(problems),
+                  "good" if not problems else "bad"),
+        html.heading("Video"), html.video(video, out), html.image(sheet, out),
+        html.heading("Per-track curves"), html.image(curves, out),
+        html.heading("Statistics"),
+        html.table([[STATISTICS[n][0], *(s.get(k, "") for k in ("count", "mean", "min", "max"))]
+                    for n, s in stats.items()], header=["statistic", "count", "mean", "min", "max"]),
+        html.heading("Objects"),
+        html.table([[k + 1, json.dumps(o)] for k, o in enumerate(scene.objects)],
+                   header=["segment id", "object"]),
+        html.heading("Meta"),
+        html.table([[k, json.dumps(v)] for k, v in scene.meta.items()], header=["key", "value"]),
+        html.heading("Every frame"), html.image(all_frames, out),
+    ]
+    return html.write_page(out / "index.html", f"Scene {sample.key}", fragments)

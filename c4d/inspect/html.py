@@ -1,0 +1,83 @@
+"""A minimal static HTML page: headings, tables, pictures and videos, with relative links.
+
+The reports are a folder that opens in any browser without a server, so pages only reference
+files next to them. Text is escaped; fragments are plain strings joined in order.
+"""
+
+from __future__ import annotations
+
+import html
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+_STYLE = """
+body { font-family: sans-serif; margin: 1.5em; max-width: 1400px; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.5em 0; }
+td, th { border: 1px solid #ccc; padding: 2px 8px; text-align: left; font-size: 0.9em; }
+img, video { max-width: 100%; image-rendering: pixelated; margin: 4px 0; }
+.bad { color: #b00; } .good { color: #070; } .note { color: #555; font-size: 0.9em; }
+"""
+
+
+def text(value: object, css_class: str | None = None) -> str:
+    """An escaped paragraph."""
+    attr = f' class="{css_class}"' if css_class else ""
+    return f"<p{attr}>{html.escape(str(value))}</p>"
+
+
+def heading(value: str) -> str:
+    return f"<h2>{html.escape(value)}</h2>"
+
+
+def table(rows: Iterable[Sequence[object]], header: Sequence[str] | None = None) -> str:
+    """Rows of cells (escaped) as an HTML table; floats are shown with 4 significant digits."""
+
+    def cell(value: object) -> str:
+        return html.escape(f"{value:.4g}" if isinstance(value, float) else str(value))
+
+    parts = ["<table>"]
+    if header:
+        parts.append("<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
+    parts += ["<tr>" + "".join(f"<td>{cell(v)}</td>" for v in row) + "</tr>" for row in rows]
+    parts.append("</table>")
+    return "\n".join(parts)
+
+
+def _relative(path: str | os.PathLike, page_dir: Path) -> str:
+    return html.escape(Path(os.path.relpath(path, page_dir)).as_posix())
+
+
+def image(path: str | os.PathLike, page_dir: Path, caption: str | None = None) -> str:
+    """An <img> of a file, linked relative to the page's folder, with an optional caption."""
+    src = _relative(path, page_dir)
+    tag = f'<a href="{src}"><img src="{src}" alt="{html.escape(caption or src)}"></a>'
+    return tag + (text(caption, "note") if caption else "")
+
+
+def video(path: str | os.PathLike, page_dir: Path, caption: str | None = None) -> str:
+    """A looping, muted, autoplaying <video> of a file relative to the page's folder."""
+    src = _relative(path, page_dir)
+    tag = f'<video src="{src}" controls loop muted autoplay playsinline></video>'
+    return tag + (text(caption, "note") if caption else "")
+
+
+def link(path: str | os.PathLike, page_dir: Path, label: str) -> str:
+    return f'<a href="{_relative(path, page_dir)}">{html.escape(label)}</a>'
+
+
+def write_page(path: str | os.PathLike, title: str, fragments: Iterable[str]) -> Path:
+    """Write a complete HTML page (through a temporary file) and return its path."""
+    path = Path(path)
+    body = "\n".join(fragments)
+    page = (
+        "<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\">"
+        f"<title>{html.escape(title)}</title><style>{_STYLE}</style></head>\n"
+        f"<body><h1>{html.escape(title)}</h1>\n{body}\n</body></html>\n"
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(page, encoding="utf-8")
+    os.replace(tmp, path)
+    return path

@@ -1,0 +1,407 @@
+"""Report on a reconstruction directory written by `c4d run` (layout: INTERFACES.md, docs/FORMAT.md).
+
+Reads what is there, lists what is missing or inconsistent, and writes into OUT:
+`overview.webm` (frames with tracks | depth | motion mask), `depth.webm`, `masks.webm`,
+`trajectory.png` (with the aligned ground truth when given), `flythrough.webm` (the 4D point
+cloud: static background once plus each frame's moving points, seen from an orbiting virtual
+camera, rendered by `point_render`), `ply.png` (scene.ply read back with trimesh and rendered),
+`summary.json` and `index.html`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+
+from c4d.errors import UserError
+from c4d.inspect import html, plots, point_render
+from c4d_pipeline.cli_eval_recon import read_reconstruction, read_tum_poses, scene_frame_indices
+from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
+from datagen import geometry, visualize
+
+log = logging.getLogger(__name__)
+
+MARKER_FILES = ("poses_tum.txt", "pointmaps.npz", "report.json")  # any one marks a reconstruction
+STATIC_POINTS = 80_000  # background points in the fly-through (random subset, fixed seed)
+DYNAMIC_POINTS = 6_000  # moving points per frame in the fly-through
+KEEP_CONFIDENT = 0.8  # the fly-through drops the 20 % least confident points of every frame
+MIN_RENDER_HEIGHT = 256
+CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
+
+
+def is_reconstruction(path: str | Path) -> bool:
+    """True if `path` is a directory that looks like the output of `c4d run`."""
+    path = Path(path)
+    return path.is_dir() and any((path / name).is_file() for name in MARKER_FILES)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Reconstruction:
+    """What a `c4d run` directory holds; a field is None when its file is missing or unreadable.
+
+    Shapes: T frames of H x W pixels, N tracks. `problems` lists what is missing or inconsistent.
+    """
+
+    path: Path
+    frames: np.ndarray | None = None  # uint8 (T,H,W,3)
+    depth: np.ndarray | None = None  # float32 (T,H,W) z-depth
+    masks: np.ndarray | None = None  # bool (T,H,W), True = dynamic
+    cam_to_world: np.ndarray | None = None  # float64 (T,4,4) from poses_tum.txt
+    intrinsics: np.ndarray | None = None  # float32 (T,3,3)
+    points: np.ndarray | None = None  # float32 (T,H,W,3) world pointmaps
+    confidence: np.ndarray | None = None  # float32 (T,H,W)
+    tracks_2d: dict | None = None  # tracks (T,N,2), visible (T,N), moving (T,N), queries (N,3)
+    tracks_3d: dict | None = None  # tracks_world (T,N,3), valid (T,N)
+    ply_points: np.ndarray | None = None  # (P,3) from scene.ply
+    ply_colors: np.ndarray | None = None  # uint8 (P,3)
+    report: dict | None = None
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def num_frames(self) -> int | None:
+        for value in (self.frames, self.depth, self.cam_to_world, self.points):
+            if value is not None:
+                return len(value)
+        return None
+
+
+def _numbered(folder: Path, suffix: str) -> list[Path]:
+    return sorted(folder.glob(f"[0-9]*{suffix}")) if folder.is_dir() else []
+
+
+def _read_images(paths: list[Path], flags: int) -> np.ndarray:
+    images = []
+    for path in paths:
+        image = cv2.imread(str(path), flags)
+        if image is None:
+            raise ValueError(f"{path.name} is not a readable image")
+        images.append(image[..., ::-1] if image.ndim == 3 else image)
+    return np.ascontiguousarray(np.stack(images))
+
+
+def _load(recon: Reconstruction, name: str, loader) -> None:
+    """Run `loader()`; a missing or broken file becomes a problem, not an exception."""
+    try:
+        loader()
+    except FileNotFoundError:
+        recon.problems.append(f"{name} is missing")
+    except Exception as exc:  # noqa: BLE001 -- any decoding failure is reported, reading goes on
+        recon.problems.append(f"{name} cannot be read: {type(exc).__name__}: {exc}")
+
+
+def load_reconstruction(path: str | Path) -> Reconstruction:
+    """Read every part of a `c4d run` directory that is present and readable."""
+    path = Path(path)
+    if not path.is_dir():
+        raise UserError(f"reconstruction directory {path} does not exist; pass the --out of `c4d run`")
+    recon = Reconstruction(path)
+
+    def frames():
+        files = _numbered(path / "frames", ".png")
+        if not files:
+            raise FileNotFoundError
+        recon.frames = _read_images(files, cv2.IMREAD_COLOR)
+
+    def depth():
+        files = _numbered(path / "depth", ".npy")
+        if not files:
+            raise FileNotFoundError
+        recon.depth = np.stack([np.load(f) for f in files]).astype(np.float32)
+
+    def masks():
+        files = _numbered(path / "masks", ".png")
+        if not files:
+            raise FileNotFoundError
+        values = _read_images(files, cv2.IMREAD_GRAYSCALE)
+        if not np.isin(values, (0, 255)).all():
+            recon.problems.append("masks/ holds values other than 0 and 255")
+        recon.masks = values > 127
+
+    def poses():
+        if not (path / "poses_tum.txt").is_file():
+            raise FileNotFoundError
+        recon.cam_to_world = read_tum_poses(path / "poses_tum.txt")[1]
+
+    def intrinsics():
+        recon.intrinsics = np.load(path / "intrinsics.npy")
+
+    def pointmaps():
+        with np.load(path / "pointmaps.npz") as data:
+            recon.points, recon.confidence = data["points"], data["confidence"]
+
+    def tracks_2d():
+        with np.load(path / "tracks_2d.npz") as data:
+            recon.tracks_2d = {k: data[k] for k in data.files}
+
+    def tracks_3d():
+        with np.load(path / "tracks_3d.npz") as data:
+            recon.tracks_3d = {k: data[k] for k in data.files}
+
+    def ply():
+        if not (path / "scene.ply").is_file():
+            raise FileNotFoundError
+        cloud = trimesh.load(path / "scene.ply", process=False)
+        vertices = np.asarray(cloud.vertices)
+        if len(vertices) == 0:
+            raise ValueError("it has no points")
+        colors = getattr(cloud, "colors", None)
+        if colors is None or len(colors) != len(vertices):
+            colors = getattr(getattr(cloud, "visual", None), "vertex_colors", None)
+        recon.ply_points = vertices
+        recon.ply_colors = (np.asarray(colors)[:, :3].astype(np.uint8) if colors is not None
+                            and len(colors) == len(vertices) else np.full((len(vertices), 3), 128, np.uint8))
+
+    def report():
+        recon.report = json.loads((path / "report.json").read_text())
+
+    for name, loader in (("frames/", frames), ("depth/", depth), ("masks/", masks),
+                         ("poses_tum.txt", poses), ("intrinsics.npy", intrinsics),
+                         ("pointmaps.npz", pointmaps), ("tracks_2d.npz", tracks_2d),
+                         ("tracks_3d.npz", tracks_3d), ("scene.ply", ply), ("report.json", report)):
+        _load(recon, name, loader)
+    recon.problems += consistency_problems(recon)
+    return recon
+
+
+def consistency_problems(recon: Reconstruction) -> list[str]:
+    """Disagreements between the parts of a reconstruction (frame counts, sizes, values)."""
+    problems = []
+    counts = {name: len(value) for name, value in (
+        ("frames", recon.frames), ("depth", recon.depth), ("masks", recon.masks),
+        ("poses", recon.cam_to_world), ("intrinsics", recon.intrinsics), ("pointmaps", recon.points),
+        ("tracks_2d", None if recon.tracks_2d is None else recon.tracks_2d.get("tracks")),
+        ("tracks_3d", None if recon.tracks_3d is None else recon.tracks_3d.get("tracks_world")),
+    ) if value is not None}
+    if len(set(counts.values())) > 1:
+        problems.append(f"frame counts disagree: {counts}")
+    sizes = {name: value.shape[1:3] for name, value in (
+        ("frames", recon.frames), ("depth", recon.depth), ("masks", recon.masks),
+        ("pointmaps", recon.points)) if value is not None}
+    if len(set(sizes.values())) > 1:
+        problems.append(f"image sizes disagree: {sizes}")
+    for name, value in (("depth", recon.depth), ("poses", recon.cam_to_world),
+                        ("intrinsics", recon.intrinsics), ("pointmaps", recon.points)):
+        if value is not None and not np.isfinite(value).all():
+            problems.append(f"{name} has {int((~np.isfinite(value)).sum())} NaN or infinite values")
+    if recon.depth is not None and (recon.depth[np.isfinite(recon.depth)] <= 0).any():
+        problems.append("depth has values <= 0")
+    if recon.intrinsics is not None and recon.intrinsics.shape[1:] != (3, 3):
+        problems.append(f"intrinsics.npy has shape {recon.intrinsics.shape}, expected (T,3,3)")
+    if recon.tracks_2d is not None:
+        missing = {"tracks", "visible", "moving", "queries"} - set(recon.tracks_2d)
+        if missing:
+            problems.append(f"tracks_2d.npz lacks {sorted(missing)}")
+    if recon.tracks_3d is not None:
+        missing = {"tracks_world", "valid"} - set(recon.tracks_3d)
+        if missing:
+            problems.append(f"tracks_3d.npz lacks {sorted(missing)}")
+    return problems
+
+
+# --------------------------------------------------------------------------------------------
+# Pictures
+# --------------------------------------------------------------------------------------------
+
+
+def overview_video(recon: Reconstruction) -> np.ndarray | None:
+    """Frames with tracks | depth | motion mask over the frames: RGB uint8 (T,H',W',3)."""
+    if recon.frames is None:
+        return None
+    factor = visualize.display_scale(recon.frames.shape[1], MIN_RENDER_HEIGHT)
+    frames = visualize.upscale(recon.frames, factor)
+    panels, labels = [frames], ["frames"]
+    tracks = recon.tracks_2d
+    if tracks is not None and {"tracks", "visible"} <= set(tracks) and len(tracks["tracks"]) == len(frames):
+        scaled = (tracks["tracks"] + 0.5) * factor - 0.5  # (T,N,2) on the upscaled grid
+        panels[0] = visualize.draw_tracks(frames, scaled, tracks["visible"], tracks.get("moving"),
+                                          radius=max(1.5, 0.007 * frames.shape[1]), legend=True)
+        labels[0] = "frames + tracks"
+    if recon.depth is not None and recon.depth.shape[:3] == recon.frames.shape[:3]:
+        panels.append(visualize.upscale(visualize.colorize_depth(recon.depth), factor))
+        labels.append("depth")
+    if recon.masks is not None and recon.masks.shape[:3] == recon.frames.shape[:3]:
+        mask_rgb = visualize.colorize_mask(recon.masks)
+        panels.append(visualize.upscale(visualize.blend(recon.frames, mask_rgb, 0.6), factor))
+        labels.append("motion mask")
+    return visualize.side_by_side(panels, labels)
+
+
+def _subsample(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
+    return np.sort(rng.choice(count, limit, replace=False)) if count > limit else np.arange(count)
+
+
+def flythrough_frames(recon: Reconstruction, seed: int = 0) -> np.ndarray | None:
+    """The 4D point cloud from an orbiting virtual camera while time runs: uint8 (V,H,W,3).
+
+    Static background (pixels outside the motion mask, all frames, subsampled once) plus the
+    moving points of the current frame; camera centres are drawn as dark dots.
+    """
+    if recon.points is None or recon.cam_to_world is None:
+        return None
+    num_frames, height, width = recon.points.shape[:3]
+    colors = (recon.frames if recon.frames is not None and recon.frames.shape[:3] == recon.points.shape[:3]
+              else np.full((num_frames, height, width, 3), 160, np.uint8))
+    dynamic = (recon.masks if recon.masks is not None and recon.masks.shape == recon.points.shape[:3]
+               else np.zeros(recon.points.shape[:3], bool))
+    confidence = recon.confidence if recon.confidence is not None else np.ones(recon.points.shape[:3])
+    finite = np.isfinite(recon.points).all(-1) & np.isfinite(confidence)
+    threshold = np.quantile(confidence[finite], 1.0 - KEEP_CONFIDENT) if finite.any() else 0.0
+    good = finite & (confidence >= threshold)  # (T,H,W)
+
+    rng = np.random.default_rng(seed)
+    static = good & ~dynamic
+    pick = _subsample(rng, int(static.sum()), STATIC_POINTS)
+    static_points, static_colors = recon.points[static][pick], colors[static][pick]
+    centers = recon.cam_to_world[:, :3, 3]  # (T,3)
+    scene_points = static_points if len(static_points) else recon.points[good]
+    if len(scene_points) == 0:
+        return None
+    center = np.median(scene_points, axis=0)
+
+    up = -recon.cam_to_world[:, :3, 1].mean(axis=0)  # camera y points down in the image
+    up /= np.linalg.norm(up)
+    back = centers[0] - center
+    distance = np.linalg.norm(back) + 1e-9
+    start_eye = center + 1.6 * back + 0.5 * distance * up  # behind and above the first camera
+    num_views = max(2 * num_frames, 48)
+    poses = point_render.orbit_path(center, start_eye, up, num_views)
+
+    out_h = max(MIN_RENDER_HEIGHT, height)
+    out_w = int(round(out_h * width / height))
+    focal = 0.9 * out_w
+    intrinsics = np.array([[focal, 0, (out_w - 1) / 2], [0, focal, (out_h - 1) / 2], [0, 0, 1]])
+    views = []
+    for v, pose in enumerate(poses):
+        t = min(num_frames - 1, v * num_frames // num_views)
+        moving = good[t] & dynamic[t]
+        pick_t = _subsample(rng, int(moving.sum()), DYNAMIC_POINTS)
+        points = np.concatenate([static_points, recon.points[t][moving][pick_t], centers])
+        point_colors = np.concatenate([static_colors, colors[t][moving][pick_t],
+                                       np.tile(CAMERA_COLOR, (num_frames, 1))]).astype(np.uint8)
+        image = point_render.render_points(points, point_colors, intrinsics, pose, (out_h, out_w))
+        views.append(visualize.label_image(image, f"frame {t}"))
+    return np.stack(views)
+
+
+def ply_picture(recon: Reconstruction) -> np.ndarray | None:
+    """scene.ply as read back by trimesh, from behind and above the first camera: (H,W,3) uint8."""
+    if recon.ply_points is None or recon.cam_to_world is None:
+        return None
+    center = np.median(recon.ply_points, axis=0)
+    up = -recon.cam_to_world[:, :3, 1].mean(axis=0)
+    up /= np.linalg.norm(up)
+    back = recon.cam_to_world[0, :3, 3] - center
+    pose = geometry.look_at(center + 1.6 * back + 0.5 * np.linalg.norm(back) * up, center, up)
+    size = MIN_RENDER_HEIGHT * 3 // 2
+    intrinsics = np.array([[0.9 * size, 0, (size - 1) / 2], [0, 0.9 * size, (size - 1) / 2], [0, 0, 1]])
+    return point_render.render_points(recon.ply_points, recon.ply_colors, intrinsics, pose, (size, size))
+
+
+def ground_truth_trajectory(recon: Reconstruction, scene) -> tuple[np.ndarray, dict]:
+    """The estimated poses Sim(3)-aligned onto the ground truth of the frames that were
+    reconstructed (chosen as `c4d eval-recon` chooses them), the ground-truth poses, and the
+    pose metrics: ((T,4,4), (T,4,4), {ate, rpe_trans, rpe_rot, sim3_scale})."""
+    indices, _ = scene_frame_indices(read_reconstruction(recon.path), scene.num_frames)
+    truth = scene.cam_to_world[indices].astype(np.float64)  # (T,4,4)
+    aligned, _ = align_trajectory(recon.cam_to_world, truth)
+    return aligned, truth, pose_metrics(recon.cam_to_world, truth)
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------------
+
+
+def build_recon_report(path: str | Path, out: str | Path, gt_scene=None, gt_name: str = "",
+                       video_ext: str = ".webm", fps: float = 12.0) -> dict:
+    """Write the pictures, videos, `summary.json` and `index.html` of a reconstruction into `out`.
+
+    `gt_scene`: an optional `datagen.Scene` with the ground truth of the same video; its camera
+    trajectory is drawn with the estimate aligned onto it. Returns the summary.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    recon = load_reconstruction(path)
+    written: dict[str, Path] = {}
+    overview = overview_video(recon)
+    if overview is not None:
+        written["overview"] = visualize.write_video(out / f"overview{video_ext}", overview, fps)
+    if recon.depth is not None:
+        written["depth"] = visualize.write_video(out / f"depth{video_ext}",
+                                                 visualize.colorize_depth(recon.depth), fps)
+    if recon.masks is not None:
+        written["masks"] = visualize.write_video(out / f"masks{video_ext}",
+                                                 visualize.colorize_mask(recon.masks), fps)
+
+    pose_errors = None
+    if recon.cam_to_world is not None:
+        estimated, truth, title = recon.cam_to_world, None, "camera trajectory"
+        if gt_scene is not None:
+            try:
+                estimated, truth, pose_errors = ground_truth_trajectory(recon, gt_scene)
+                title += f" Sim(3)-aligned to {gt_name} (ATE {pose_errors['ate']:.3g})"
+            except UserError as exc:
+                recon.problems.append(f"ground truth not drawn: {exc}")
+        written["trajectory"] = plots.trajectory_plot(
+            out / "trajectory.png", estimated[:, :3, 3], None if truth is None else truth[:, :3, 3], title)
+    flythrough = flythrough_frames(recon)
+    if flythrough is not None:
+        written["flythrough"] = visualize.write_video(out / f"flythrough{video_ext}", flythrough, fps)
+        written["flythrough_still"] = visualize.write_image(out / "flythrough.png", flythrough[0])
+    ply = ply_picture(recon)
+    if ply is not None:
+        written["ply"] = visualize.write_image(out / "ply.png", ply)
+
+    summary = {
+        "reconstruction": str(recon.path),
+        "frames": recon.num_frames,
+        "image_size": None if recon.frames is None else list(recon.frames.shape[1:3]),
+        "tracks": None if recon.tracks_2d is None else int(recon.tracks_2d["tracks"].shape[1]),
+        "dynamic_pixel_fraction": None if recon.masks is None else float(recon.masks.mean()),
+        "ply_points": None if recon.ply_points is None else int(len(recon.ply_points)),
+        "pose_errors": pose_errors,
+        "problems": recon.problems,
+        "files": {k: str(v) for k, v in written.items()},
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    _write_page(out, recon, summary, written)
+    return summary
+
+
+def _write_page(out: Path, recon: Reconstruction, summary: dict, written: dict[str, Path]) -> Path:
+    fragments = [html.text(f"Reconstruction: {recon.path}")]
+    fragments.append(html.text("consistent: no problem found" if not recon.problems
+                               else "problems: " + "; ".join(recon.problems),
+                               "good" if not recon.problems else "bad"))
+    fragments.append(html.table([[k, v] for k, v in summary.items() if k not in ("problems", "files")],
+                                header=["item", "value"]))
+    captions = {
+        "overview": "Frames with tracks (blue static, red moving; hollow = occluded), depth, motion mask.",
+        "flythrough": "4D point cloud: static background plus the moving points of the current "
+                      "frame, from an orbiting virtual camera; dark dots are the estimated cameras.",
+        "trajectory": "Estimated camera centres (red) and ground truth (grey) when given.",
+        "ply": "scene.ply read back with trimesh, seen from behind the first camera.",
+        "depth": "Depth (near red, far blue).",
+        "masks": "Motion masks (red = dynamic).",
+    }
+    for name in ("overview", "flythrough", "trajectory", "ply", "depth", "masks"):
+        if name in written:
+            fragments.append(html.heading(name))
+            show = html.image if written[name].suffix == ".png" else html.video
+            fragments.append(show(written[name], out, captions[name]))
+    if recon.report:
+        fragments.append(html.heading("report.json"))
+        fragments.append(html.table([[k, json.dumps(v)[:300]] for k, v in recon.report.items()],
+                                    header=["key", "value"]))
+    return html.write_page(out / "index.html", f"Reconstruction {recon.path.name}", fragments)

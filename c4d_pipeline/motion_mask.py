@@ -1,0 +1,333 @@
+"""Motion masks: which pixels move in the world (C4D sec. 3.2.2), a flow-only baseline, the truth.
+
+C4D's correspondence-guided mask, for every directed pair (t, t') of the scene graph:
+  1. static points: tracker points visible at frame t whose mobility probability is below a
+     threshold (DynPT's `moving`; the tracker's output already holds, for every frame, the
+     estimate of the latest sliding window that covers it);
+  2. their correspondences in frame t' through the optical flow t -> t' (bilinear sampling);
+  3. a fundamental matrix from these correspondences by LMedS (cv2.findFundamentalMat), refit
+     by least squares on the LMedS inliers; it describes the camera motion only;
+  4. the Sampson distance (pixels) of every dense flow correspondence of frame t to it, and a
+     threshold: pixels that break the epipolar constraint are dynamic;
+  5. the mask of frame t is the union over all pairs (t, t') of the graph.
+Fallbacks, each logged once per call and listed in `MotionMasks.pair_info`:
+  - fewer than `min_static_points` static points (or LMedS fails on them): the fundamental
+    matrix is estimated by LMedS from a regular grid of ALL flow correspondences of the pair,
+    which stays right while less than half of the frame moves;
+  - the static points barely move (90 % of them by less than `still_camera_px`: the camera
+    stands still and F is undefined): a pixel is dynamic where its flow exceeds the threshold;
+  - if every estimate fails the pair contributes an empty mask (never an exception).
+
+The flow-only baseline (MonST3R-style): per pair, the ego-flow (the flow camera motion alone
+would cause) is compared with the optical flow; the error is min-max normalised per pair,
+averaged over the pairs that start at a frame, and thresholded (0.35 in MonST3R). The ego-flows
+are its geometry input, from either
+  - `pairwise_ego_flow`: a pair's own pointmaps, camera j placed by PnP-RANSAC (MonST3R's route);
+  - `ego_flow`: per-frame depth (H,W), K (3,3) and camera-to-world poses (4,4), e.g. an
+    optimiser's output or the ground truth (an oracle).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+
+from c4d.errors import UserError
+from c4d_pipeline.flow import scene_point_motion
+from datagen.geometry import pixel_grid, project, unproject_depth_map
+from datagen.scene import Scene
+
+log = logging.getLogger(__name__)
+Pair = tuple[int, int]
+
+
+@dataclass(frozen=True)
+class MotionMaskConfig:
+    """Settings of the correspondence-guided mask (configs/c4d: `motion_mask`)."""
+
+    mobility_threshold: float = 0.5  # a track is static at t where moving[t] < this
+    min_confidence: float = 0.0  # ... and confidence[t] >= this
+    sampson_threshold_px: float = 1.0  # dynamic where the Sampson distance exceeds this (pixels)
+    min_static_points: int = 16  # fewer -> fall back to all flow correspondences
+    fallback_grid_points: int = 2048  # about this many grid correspondences in the fallback
+    still_camera_px: float = 0.25  # 90 % of static points move less: the camera stands still
+    seed: int = 0  # seed of LMedS's random sampling
+
+
+@dataclass
+class MotionMasks:
+    """masks bool (T,H,W), True = dynamic; pair_info: one dict per pair (method, point count)."""
+
+    masks: np.ndarray
+    pair_info: list[dict[str, Any]] = field(default_factory=list)
+
+
+@dataclass
+class SceneTracks:
+    """A tracker result built from a scene's labels (the oracle tracker); same fields as dynpt's."""
+
+    tracks: np.ndarray  # float32 (T,N,2) (x, y) pixels
+    visible: np.ndarray  # bool (T,N)
+    confidence: np.ndarray  # float32 (T,N)
+    moving: np.ndarray  # float32 (T,N) probability
+    queries: np.ndarray  # float32 (N,3) (t, x, y)
+
+
+def oracle_tracks(scene: Scene) -> SceneTracks:
+    """The scene's ground-truth tracks and mobility labels as a tracker result (an oracle DynPT)."""
+    if scene.moving is None:
+        raise UserError("the scene has no mobility labels; generate it with a preset that labels motion")
+    n = np.arange(scene.num_tracks)
+    return SceneTracks(
+        tracks=scene.tracks.transpose(1, 0, 2).astype(np.float32),
+        visible=~scene.occluded.T,
+        confidence=np.ones(scene.occluded.T.shape, np.float32),
+        moving=scene.moving.T.astype(np.float32),
+        queries=np.stack([scene.query_frame, *scene.tracks[n, scene.query_frame].T], -1).astype(np.float32),
+    )
+
+
+def _numpy(x) -> np.ndarray:
+    """A numpy array from a numpy array or a (CPU/GPU) torch tensor."""
+    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
+
+
+def track_arrays(tracks) -> dict[str, np.ndarray]:
+    """tracks (T,N,2), visible, confidence, moving (T,N) as numpy, a leading batch of one dropped."""
+    arrays = {name: _numpy(getattr(tracks, name)) for name in ("tracks", "visible", "confidence", "moving")}
+    if arrays["tracks"].ndim == 4:  # (1,T,N,2): batched tracker output
+        arrays = {name: a[0] for name, a in arrays.items()}
+    return arrays
+
+
+def static_points(tracks, t: int, cfg: MotionMaskConfig = MotionMaskConfig()) -> np.ndarray:
+    """(x, y) float64 (M,2) of the tracker's points visible and static at frame t.
+
+    `tracks`: any object with tracks (T,N,2), visible (T,N), confidence (T,N), moving (T,N).
+    """
+    arrays = track_arrays(tracks)
+    xy, visible = arrays["tracks"][t], arrays["visible"][t].astype(bool)  # (N,2), (N,)
+    static = (
+        visible
+        & (arrays["moving"][t] < cfg.mobility_threshold)
+        & (arrays["confidence"][t] >= cfg.min_confidence)
+        & np.isfinite(xy).all(-1)
+    )
+    return xy[static].astype(np.float64)
+
+
+def sample_flow(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Bilinear flow (H,W,2) at points xy (M,2) -> (M,2); points outside use the nearest edge."""
+    if len(xy) == 0:
+        return np.zeros((0, 2))
+    map_xy = xy.astype(np.float32)[None]  # (1,M,2)
+    sampled = cv2.remap(flow.astype(np.float32), map_xy[..., 0], map_xy[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return sampled[0].astype(np.float64)  # (M,2)
+
+
+def sampson_distance(fundamental: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """First-order geometric distance (pixels) of correspondences x1 (...,2) <-> x2 (...,2) to F.
+
+    d = |x2' F x1| / sqrt((F x1)_0^2 + (F x1)_1^2 + (F' x2)_0^2 + (F' x2)_1^2) (Hartley-Zisserman
+    eq. 11.9, square root), with x' = (x, y, 1). Invariant to the scale of F.
+    """
+    h1 = np.concatenate([x1, np.ones_like(x1[..., :1])], -1)  # (...,3)
+    h2 = np.concatenate([x2, np.ones_like(x2[..., :1])], -1)
+    f_x1 = h1 @ fundamental.T  # (...,3) epipolar lines in image 2
+    ft_x2 = h2 @ fundamental  # (...,3) epipolar lines in image 1
+    algebraic = np.sum(h2 * f_x1, -1)
+    gradient = np.sqrt(f_x1[..., 0] ** 2 + f_x1[..., 1] ** 2 + ft_x2[..., 0] ** 2 + ft_x2[..., 1] ** 2)
+    return np.abs(algebraic) / np.maximum(gradient, 1e-12)
+
+
+def _fundamental_lmeds(x1: np.ndarray, x2: np.ndarray, seed: int) -> np.ndarray | None:
+    """F (3,3) from correspondences (M,2) <-> (M,2) by LMedS, or None if there is no solution.
+
+    As in Rousseeuw's LMedS, the minimal-sample solution is followed by a least-squares refit
+    (normalised 8-point) on its inliers: residuals within 2.5 robust standard deviations
+    sigma = 1.4826 (1 + 5 / (M - 7)) sqrt(median r^2). The refit matters on near-planar static
+    sets (a floor), where many F fit the sampled points and only the off-plane points decide.
+    """
+    if len(x1) < 8:
+        return None
+    x1, x2 = x1.astype(np.float64), x2.astype(np.float64)
+    cv2.setRNGSeed(seed)
+    fundamental, _ = cv2.findFundamentalMat(x1, x2, cv2.FM_LMEDS)
+    if fundamental is None or fundamental.shape != (3, 3) or not np.isfinite(fundamental).all():
+        return None
+    residual = sampson_distance(fundamental, x1, x2)  # (M,) pixels
+    sigma = 1.4826 * (1 + 5 / max(len(x1) - 7, 1)) * np.sqrt(np.median(residual**2))
+    inliers = residual <= max(2.5 * sigma, 1e-6)
+    if inliers.sum() >= 8:
+        refit, _ = cv2.findFundamentalMat(x1[inliers], x2[inliers], cv2.FM_8POINT)
+        if refit is not None and refit.shape == (3, 3) and np.isfinite(refit).all():
+            fundamental = refit
+    return fundamental
+
+
+def _grid_points(height: int, width: int, count: int) -> np.ndarray:
+    """About `count` pixel centres (M,2) on a regular grid over the image."""
+    step = max(1, int(np.sqrt(height * width / max(count, 1))))
+    return pixel_grid(height, width)[step // 2 :: step, step // 2 :: step].reshape(-1, 2)
+
+
+def pair_motion_mask(flow: np.ndarray, static_xy: np.ndarray, cfg: MotionMaskConfig = MotionMaskConfig()):
+    """Dynamic pixels of frame t from the flow t -> t' (H,W,2) and static points (M,2) of frame t.
+
+    Returns (mask bool (H,W), info dict with 'method' in {'static', 'all-flow', 'still',
+    'failed'} and 'static_points', the number of usable static points).
+    """
+    height, width = flow.shape[:2]
+    grid = pixel_grid(height, width)  # (H,W,2)
+    targets = static_xy + sample_flow(flow, static_xy)  # (M,2) correspondences in frame t'
+    inside = (targets[:, 0] > -0.5) & (targets[:, 0] < width - 0.5) & (targets[:, 1] > -0.5) & (targets[:, 1] < height - 0.5)
+    src, dst = static_xy[inside], targets[inside]
+    info = {"method": "static", "static_points": int(len(src))}
+
+    if len(src) >= cfg.min_static_points:
+        if np.percentile(np.linalg.norm(dst - src, axis=-1), 90) < cfg.still_camera_px:  # F undefined
+            info["method"] = "still"
+            return np.linalg.norm(flow, axis=-1) > cfg.sampson_threshold_px, info
+        fundamental = _fundamental_lmeds(src, dst, cfg.seed)
+    else:
+        fundamental = None
+    if fundamental is None:
+        info["method"] = "all-flow"
+        src = _grid_points(height, width, cfg.fallback_grid_points)  # (M,2)
+        dst = src + flow[src[:, 1].astype(int), src[:, 0].astype(int)]
+        fundamental = _fundamental_lmeds(src, dst, cfg.seed)
+    if fundamental is None:
+        info["method"] = "failed"
+        return np.zeros((height, width), bool), info
+    distance = sampson_distance(fundamental, grid, grid + flow)  # (H,W) pixels
+    return distance > cfg.sampson_threshold_px, info
+
+
+def _check_flows(flows: np.ndarray, pairs: Sequence[Pair], num_frames: int) -> None:
+    if flows.ndim != 4 or flows.shape[-1] != 2 or flows.shape[0] != len(pairs):
+        raise UserError(f"got flows of shape {flows.shape} for {len(pairs)} pairs; expected (P,H,W,2) with P = pairs")
+    bad = [p for p in pairs if not (0 <= p[0] < num_frames and 0 <= p[1] < num_frames)]
+    if bad:
+        raise UserError(f"pairs {bad[:3]} index frames outside 0..{num_frames - 1}; build the graph on the same frames")
+    if not np.isfinite(flows).all():
+        raise UserError("the optical flow contains NaN or infinite values; check the flow estimator's input")
+
+
+def _warn_frames_without_pairs(pairs: Sequence[Pair], num_frames: int) -> None:
+    lonely = sorted(set(range(num_frames)) - {i for i, _ in pairs})
+    if lonely:
+        log.warning("frames %s start no pair of the graph: their motion masks are empty", lonely)
+
+
+def correspondence_motion_masks(
+    tracks, flows: np.ndarray, pairs: Sequence[Pair], cfg: MotionMaskConfig = MotionMaskConfig()
+) -> MotionMasks:
+    """C4D's motion masks (T,H,W) from a tracker result, flows (P,H,W,2) and their pairs (i, j).
+
+    `tracks` has tracks (T,N,2), visible (T,N), confidence (T,N), moving (T,N) (dynpt's
+    TrackResult or `oracle_tracks`); flows[p] is the flow from pairs[p][0] to pairs[p][1] at
+    the tracker's pixel coordinates. Frame t's mask is the union over the pairs that start at t.
+    """
+    num_frames = track_arrays(tracks)["tracks"].shape[0]
+    _check_flows(flows, pairs, num_frames)
+    pair_masks, infos = [], []
+    for flow, (i, j) in zip(flows, pairs):
+        mask, info = pair_motion_mask(flow, static_points(tracks, i, cfg), cfg)
+        pair_masks.append(mask)
+        infos.append({"pair": [int(i), int(j)], **info})
+    fallbacks = [tuple(f["pair"]) for f in infos if f["method"] in ("all-flow", "failed")]
+    if fallbacks:
+        log.warning(
+            "%d of %d pairs had fewer than %d static points or no LMedS solution; their fundamental "
+            "matrix came from all flow correspondences (or the pair was skipped): %s",
+            len(fallbacks), len(pairs), cfg.min_static_points, fallbacks[:5],
+        )
+    masks = np.zeros((num_frames, *flows.shape[1:3]), bool)  # (T,H,W)
+    for mask, (i, _) in zip(pair_masks, pairs):
+        masks[i] |= mask  # union over the pairs that start at frame i
+    _warn_frames_without_pairs(pairs, num_frames)
+    return MotionMasks(masks, infos)
+
+
+def ego_flow(depth: np.ndarray, intrinsics_i: np.ndarray, intrinsics_j: np.ndarray,
+             cam_to_world_i: np.ndarray, cam_to_world_j: np.ndarray) -> np.ndarray:
+    """Flow (H,W,2) that camera motion alone causes: pixels of frame i lifted with z-depth (H,W),
+    K_i (3,3) and camera-to-world pose_i (4,4), projected with K_j and pose_j. Points that land
+    behind camera j get NaN.
+    """
+    points = unproject_depth_map(depth, intrinsics_i.astype(np.float64), cam_to_world_i.astype(np.float64))  # (H,W,3)
+    pixels, z = project(points, intrinsics_j.astype(np.float64), cam_to_world_j.astype(np.float64))  # (H,W,2), (H,W)
+    return np.where(z[..., None] > 1e-9, pixels - pixel_grid(*depth.shape), np.nan)
+
+
+def pairwise_ego_flow(pts_i: np.ndarray, pts_j: np.ndarray, conf_j: np.ndarray, intrinsics_j: np.ndarray,
+                      min_conf: float = 3.0) -> np.ndarray:
+    """Ego-flow (H,W,2) i -> j from one pair's pointmaps, as MonST3R's pair viewer gets it.
+
+    pts_i, pts_j (H,W,3): both views' pixels in camera i's frame (any common scale); conf_j
+    (H,W) their raw confidence (>= 1). Camera j's pose in that frame comes from PnP-RANSAC
+    (SQPnP, 100 iterations, 5 px) of pts_j against its own pixels with K_j (3,3), on pixels of
+    confidence > `min_conf` (all pixels if fewer than 6 pass); pts_i is then projected into it.
+    """
+    grid = pixel_grid(*pts_i.shape[:2])  # (H,W,2)
+    usable = conf_j > min_conf if (conf_j > min_conf).sum() >= 6 else np.ones(conf_j.shape, bool)
+    ok, rvec, tvec, _ = cv2.solvePnPRansac(
+        pts_j[usable].astype(np.float64), grid[usable], intrinsics_j.astype(np.float64), None,
+        iterationsCount=100, reprojectionError=5.0, flags=cv2.SOLVEPNP_SQPNP,
+    )
+    if not ok:
+        return np.full(grid.shape, np.nan)
+    rot = cv2.Rodrigues(rvec)[0]  # camera-i frame -> camera j
+    points_j = pts_i.astype(np.float64) @ rot.T + tvec[:, 0]  # (H,W,3)
+    uvw = points_j @ intrinsics_j.astype(np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(points_j[..., 2:] > 1e-9, uvw[..., :2] / uvw[..., 2:], np.nan) - grid
+
+
+def flow_only_motion_masks(
+    flows: np.ndarray, ego_flows: np.ndarray, pairs: Sequence[Pair], num_frames: int, threshold: float = 0.35
+) -> MotionMasks:
+    """MonST3R-style masks (T,H,W) from optical flows and ego-flows, both (P,H,W,2), of pairs.
+
+    Per pair the end-point error |ego - flow| is min-max normalised to [0, 1] (pixels whose
+    ego-flow is undefined get the maximum); frame t averages the pairs (t, t') and is dynamic
+    above `threshold`. The ego-flows are the caller's geometry: `ego_flow` from per-frame depth,
+    K and poses, or `pairwise_ego_flow` from a pair's pointmaps.
+    """
+    _check_flows(flows, pairs, num_frames)
+    if ego_flows.shape != flows.shape:
+        raise UserError(f"got ego-flows of shape {ego_flows.shape} for flows of shape {flows.shape}; give one per pair")
+    total = np.zeros((num_frames, *flows.shape[1:3]))  # (T,H,W) summed normalised errors
+    count = np.zeros(num_frames, int)
+    for flow, ego, (i, _) in zip(flows, ego_flows, pairs):
+        error = np.linalg.norm(ego - flow, axis=-1)  # (H,W) end-point error, pixels
+        finite = np.isfinite(error)
+        if not finite.any():
+            continue
+        low, high = error[finite].min(), error[finite].max()
+        total[i] += np.where(finite, (error - low) / max(high - low, 1e-12), 1.0)
+        count[i] += 1
+    _warn_frames_without_pairs(pairs, num_frames)
+    masks = (total / np.maximum(count, 1)[:, None, None] > threshold) & (count > 0)[:, None, None]
+    return MotionMasks(masks, [{"pair": [int(i), int(j)], "method": "ego-flow"} for i, j in pairs])
+
+
+def ground_truth_motion_masks(scene: Scene, hw: tuple[int, int] | None = None) -> np.ndarray:
+    """bool (T,h,w): pixels whose surface point moved more than the scene's mobility threshold
+    in the world since the previous frame (frame 0: until frame 1), the per-pixel version of the
+    tracks' `moving` label. `hw` resamples to (h, w) (default: scene size).
+    """
+    if scene.depth is None or scene.segmentation is None or scene.object_to_world is None:
+        raise UserError("ground-truth motion masks need the scene's depth, segmentation and object poses")
+    threshold = float(scene.meta.get("mobility_threshold", 0.01))
+    hw = hw or scene.image_size
+    masks = np.zeros((scene.num_frames, *hw), bool)
+    for t in range(scene.num_frames):
+        other = t - 1 if t > 0 else min(1, scene.num_frames - 1)
+        points_t, points_other = scene_point_motion(scene, t, other, hw)
+        masks[t] = np.linalg.norm(points_t - points_other, axis=-1) > threshold
+    return masks

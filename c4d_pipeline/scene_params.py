@@ -1,0 +1,134 @@
+"""The optimised variables of the 4D reconstruction, and the world pointmaps they define.
+
+Per frame t (T frames, H x W pixels):
+- depth D^t, parametrised as log-depth (T,H,W);
+- camera-to-world pose [R^t | T^t]: unnormalised quaternion (w,x,y,z) (T,4) and translation (T,3);
+- focal length f^t (square pixels), parametrised as `focal_break` * log f (DUSt3R's trick, so one
+  Adam step moves f by ~lr/focal_break relative); the principal point is fixed at the image centre
+  ((W-1)/2, (H-1)/2), or shared as one focal when `shared_focal`.
+Per directed edge e: a similarity taking the pair's pointmaps into the world,
+P_e(x) = sigma_e R_e x + t_e; the geometric mean of sigma_e is held at its initial value, which
+removes the global-scale degeneracy of global alignment (all points collapsing to zero).
+
+World pointmap: X^t(u, v) = R^t (D^t(u,v) K^-1 [u, v, 1]^T) + T^t.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+FOCAL_BREAK = 20.0
+
+
+def quat_to_rotation(quat: torch.Tensor) -> torch.Tensor:
+    """(...,4) quaternions (w,x,y,z), any norm -> (...,3,3) rotation matrices."""
+    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True)).unbind(-1)
+    rot = torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    )  # (...,9)
+    return rot.reshape(quat.shape[:-1] + (3, 3))
+
+
+def rotation_to_quat(rot: torch.Tensor) -> torch.Tensor:
+    """(...,3,3) rotations -> (...,4) quaternions (w,x,y,z); uses the project's numpy helper."""
+    from datagen.geometry import matrix_to_quat
+
+    return torch.as_tensor(matrix_to_quat(rot.detach().cpu().double().numpy()), dtype=rot.dtype)
+
+
+def pixel_rays(height: int, width: int, focal: torch.Tensor, principal: torch.Tensor) -> torch.Tensor:
+    """K^-1 [u, v, 1] for every pixel centre: focal (T,), principal (2,) -> (T,H,W,3)."""
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=focal.dtype, device=focal.device),
+        torch.arange(width, dtype=focal.dtype, device=focal.device),
+        indexing="ij",
+    )  # (H,W) each
+    x = (u - principal[0])[None] / focal[:, None, None]  # (T,H,W)
+    y = (v - principal[1])[None] / focal[:, None, None]  # (T,H,W)
+    return torch.stack([x, y, torch.ones_like(x)], dim=-1)  # (T,H,W,3)
+
+
+class SceneParams(nn.Module):
+    """Depth, poses, focals and per-edge similarities as `nn.Parameter`s (see module docstring).
+
+    Initial values: depth (T,H,W) > 0, cam_to_world (T,4,4) rigid, focal (T,), edge_scale (E,),
+    edge_rotation (E,3,3), edge_translation (E,3).
+    """
+
+    def __init__(
+        self,
+        depth: torch.Tensor,
+        cam_to_world: torch.Tensor,
+        focal: torch.Tensor,
+        edge_scale: torch.Tensor,
+        edge_rotation: torch.Tensor,
+        edge_translation: torch.Tensor,
+        shared_focal: bool = False,
+    ):
+        super().__init__()
+        num_frames, height, width = depth.shape
+        self.image_size = (height, width)
+        self.shared_focal = shared_focal
+        self.register_buffer("principal", torch.tensor([(width - 1) / 2, (height - 1) / 2]))
+        self.log_depth = nn.Parameter(depth.clamp_min(1e-6).log())  # (T,H,W)
+        self.quat = nn.Parameter(rotation_to_quat(cam_to_world[:, :3, :3]))  # (T,4)
+        self.trans = nn.Parameter(cam_to_world[:, :3, 3].clone())  # (T,3)
+        log_f = focal.log() * FOCAL_BREAK  # (T,)
+        self.focal_param = nn.Parameter(log_f.mean(0, keepdim=True) if shared_focal else log_f)
+        self.edge_quat = nn.Parameter(rotation_to_quat(edge_rotation))  # (E,4)
+        self.edge_trans = nn.Parameter(edge_translation.clone())  # (E,3)
+        self.edge_log_scale = nn.Parameter(edge_scale.log())  # (E,)
+        self.register_buffer("mean_log_scale", edge_scale.log().mean())
+        self.num_frames = num_frames
+
+    # -- parameter groups (for freezing in stage 2)
+    def camera_parameters(self) -> list[nn.Parameter]:
+        return [self.quat, self.trans, self.focal_param]
+
+    def edge_parameters(self) -> list[nn.Parameter]:
+        return [self.edge_quat, self.edge_trans, self.edge_log_scale]
+
+    # -- derived quantities
+    def depth(self) -> torch.Tensor:
+        return self.log_depth.exp()  # (T,H,W)
+
+    def rotations(self) -> torch.Tensor:
+        return quat_to_rotation(self.quat)  # (T,3,3)
+
+    def focals(self) -> torch.Tensor:
+        return (self.focal_param / FOCAL_BREAK).exp().expand(self.num_frames)  # (T,)
+
+    def intrinsics(self) -> torch.Tensor:
+        k = torch.zeros(self.num_frames, 3, 3, dtype=self.trans.dtype, device=self.trans.device)
+        f = self.focals()
+        k[:, 0, 0], k[:, 1, 1] = f, f
+        k[:, 0, 2], k[:, 1, 2], k[:, 2, 2] = self.principal[0], self.principal[1], 1.0
+        return k  # (T,3,3)
+
+    def cam_to_world(self) -> torch.Tensor:
+        pose = torch.zeros(self.num_frames, 4, 4, dtype=self.trans.dtype, device=self.trans.device)
+        pose[:, :3, :3] = self.rotations()
+        pose[:, :3, 3] = self.trans
+        pose[:, 3, 3] = 1.0
+        return pose  # (T,4,4)
+
+    def camera_points(self) -> torch.Tensor:
+        """(T,H,W,3) every pixel in its own camera frame."""
+        rays = pixel_rays(*self.image_size, self.focals(), self.principal)  # (T,H,W,3)
+        return rays * self.depth()[..., None]
+
+    def world_points(self, cam_points: torch.Tensor | None = None) -> torch.Tensor:
+        """(T,H,W,3) the global pointmaps X^t (from `camera_points()` unless given)."""
+        cam = self.camera_points() if cam_points is None else cam_points  # (T,H,W,3)
+        return torch.einsum("tij,thwj->thwi", self.rotations(), cam) + self.trans[:, None, None]
+
+    def edge_similarities(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Per-edge (scale (E,), rotation (E,3,3), translation (E,3)); mean log-scale held fixed."""
+        log_s = self.edge_log_scale - self.edge_log_scale.mean() + self.mean_log_scale
+        return log_s.exp(), quat_to_rotation(self.edge_quat), self.edge_trans

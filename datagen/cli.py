@@ -1,0 +1,245 @@
+"""`c4d datagen`: generate scenes of a preset into webdataset shards, in parallel and resumably.
+
+    c4d datagen --preset movi-e --num-scenes 1000 --out data/movi-e --workers 8
+
+Scene i of seed S is the same whatever the worker count, task split or number of reruns. Each
+shard is written under a temporary name and renamed when complete, so rerunning the same command
+after a crash (or with more tasks of a job array) only generates the missing shards. The dataset's
+identity (config, counts, generator version) is kept in `OUT/dataset-{split}.json`; a rerun into
+the same directory with a different config is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import multiprocessing
+import os
+import time
+from collections import deque
+from itertools import islice
+from pathlib import Path
+from typing import Any, Iterator
+
+from tqdm import tqdm
+
+import datagen
+from c4d.config import available_presets, load_config, parse_overrides, to_dict
+from c4d.errors import UserError
+from c4d.system import require_egl
+from datagen.jobs import ShardPlan, resolve_task
+from datagen.shards import FORMAT_VERSION, ShardWriter, disk_error, encode_scene, scene_key
+from datagen.shards import write_json_atomic
+
+log = logging.getLogger(__name__)
+
+DATASET_FORMAT = "c4d-datagen-shards"
+
+
+def usable_cpus() -> int:
+    """CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    presets = ", ".join(available_presets("datagen")) or "none yet"
+    parser.add_argument("--preset", default="movi-e", help=f"scene recipe ({presets}) or a YAML path")
+    parser.add_argument("--num-scenes", type=int, required=True, help="scenes in the dataset (all tasks)")
+    parser.add_argument("--out", type=Path, required=True, help="output directory of the shards")
+    parser.add_argument("--seed", type=int, help="dataset seed (config key `seed`)")
+    parser.add_argument(
+        "--workers", type=int, default=usable_cpus(),
+        help="worker processes (default: all usable CPU cores)",
+    )
+    parser.add_argument("--resolution", help="frame size: `256` (square) or `HxW` such as 384x512")
+    parser.add_argument("--frames", type=int, help="frames per video (config key `frames`)")
+    parser.add_argument("--scenes-per-shard", type=int, default=32, help="scenes per .tar shard")
+    parser.add_argument("--split", choices=("train", "val", "test"), help="asset split and file prefix")
+    parser.add_argument("--assets", help="folder of textured OBJ/GLB/GLTF meshes (config key `assets_dir`)")
+    parser.add_argument(
+        "--config", action="append", default=[], metavar="FILE",
+        help="YAML file merged over the preset (repeatable)",
+    )
+    parser.add_argument("--task-index", type=int, help="this task's index in a job array (from 0)")
+    parser.add_argument(
+        "--num-tasks", type=int,
+        help="tasks in the job array; default from SLURM_ARRAY_TASK_ID/COUNT or RANK/WORLD_SIZE",
+    )
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+
+
+def parse_resolution(text: str) -> list[int]:
+    """`256` -> [256, 256]; `384x512` -> [384, 512] (height x width)."""
+    parts = text.lower().split("x")
+    try:
+        size = [int(p) for p in parts]
+    except ValueError:
+        size = []
+    if len(parts) == 1:
+        size = size * 2
+    if len(size) != 2 or min(size) < 8:
+        raise UserError(f"--resolution {text!r} must be `S` or `HxW` with sizes of at least 8, e.g. 384x512")
+    return size
+
+
+def flag_overrides(args: argparse.Namespace) -> list[str]:
+    """The `key=value` overrides the named flags stand for; a key set twice is an error."""
+    flags = {
+        "seed": args.seed,
+        "frames": args.frames,
+        "resolution": parse_resolution(args.resolution) if args.resolution else None,
+        "split": args.split,
+        "assets_dir": args.assets,
+    }
+    given = parse_overrides(args.overrides)
+    overrides = []
+    for key, value in flags.items():
+        if value is None:
+            continue
+        if key in given:
+            raise UserError(f"`{key}` is set both by a flag and by `{key}=...`; give it once")
+        overrides.append(f"{key}={json.dumps(value)}")
+    return overrides
+
+
+def dataset_record(cfg, plan: ShardPlan, preset: str) -> dict[str, Any]:
+    """What identifies the dataset in OUT: reruns and other tasks must agree on all of it."""
+    return {
+        "format": DATASET_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "generator_version": datagen.__version__,
+        "preset": preset,
+        "split": plan.split,
+        "seed": int(cfg.seed),
+        "num_scenes": plan.num_scenes,
+        "scenes_per_shard": plan.scenes_per_shard,
+        "num_shards": plan.num_shards,
+        "shard_pattern": "{split}-{shard:06d}.tar",
+        "scene_key_pattern": "{split}-{scene_index:08d}",
+        "config": to_dict(cfg),
+    }
+
+
+def claim_directory(out: Path, record: dict[str, Any]) -> None:
+    """Create OUT and its dataset file, or check that the existing one describes this dataset."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise disk_error(out, exc) from exc
+    path = out / f"dataset-{record['split']}.json"
+    if path.is_file():
+        try:
+            stored = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise UserError(f"cannot read {path} ({exc}); delete it or use a new --out") from exc
+        ignore = {"preset"}  # the same config may be named by preset or by path
+        differs = sorted(k for k in record.keys() | stored.keys()
+                         if k not in ignore and record.get(k) != stored.get(k))
+        if "config" in differs:
+            old, new = stored.get("config", {}), record["config"]
+            differs += [f"config.{k}" for k in sorted(new.keys() | old.keys()) if old.get(k) != new.get(k)]
+        if differs:
+            raise UserError(
+                f"{out} already holds a different dataset ({path.name} differs in: "
+                f"{', '.join(differs)}); rerun with the original settings to resume it, "
+                "or choose a new --out"
+            )
+        return
+    write_json_atomic(path, record)
+
+
+# --- scene generation, in this process or in spawned workers ------------------------------------
+
+_worker: dict[str, Any] = {}
+
+
+def _init_worker(cfg) -> None:
+    """Pool initializer: only store the config (an exception here would make Pool respawn forever)."""
+    _worker["cfg"] = cfg
+
+
+def _make_sample(cfg, scene_index: int, assets) -> dict[str, Any]:
+    from datagen.generate import generate_scene
+
+    scene = generate_scene(cfg, scene_index, assets=assets)
+    return encode_scene(scene, scene_key(cfg.split, scene_index))
+
+
+def _worker_sample(scene_index: int) -> dict[str, Any]:
+    """Generate and encode one scene in a worker; the asset library loads once per worker."""
+    cfg = _worker["cfg"]
+    if "assets" not in _worker:
+        from datagen.assets import load_asset_library
+
+        require_egl()
+        _worker["assets"] = load_asset_library(cfg)
+    return _make_sample(cfg, scene_index, _worker["assets"])
+
+
+def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str, Any]]:
+    """Encoded samples of scenes `indices`, in that order, from `workers` processes.
+
+    Workers are spawned (forking a process that may hold an EGL context is unsafe); at most two
+    scenes per worker wait in memory, so a slow scene never lets results pile up.
+    """
+    from datagen.assets import load_asset_library
+
+    if workers <= 1:
+        assets = load_asset_library(cfg)
+        for index in indices:
+            yield _make_sample(cfg, index, assets)
+        return
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(workers, initializer=_init_worker, initargs=(cfg,)) as pool:
+        todo = iter(indices)
+        pending = deque(pool.apply_async(_worker_sample, (i,)) for i in islice(todo, 2 * workers))
+        while pending:
+            sample = pending.popleft().get()
+            following = next(todo, None)
+            if following is not None:
+                pending.append(pool.apply_async(_worker_sample, (following,)))
+            yield sample
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_config("datagen", args.preset, args.config, list(args.overrides) + flag_overrides(args))
+    plan = ShardPlan(str(cfg.split), args.num_scenes, args.scenes_per_shard)
+    task_index, num_tasks = resolve_task(args.task_index, args.num_tasks)
+    if args.workers < 1:
+        raise UserError(f"--workers must be at least 1, got {args.workers}")
+    require_egl()
+    from datagen.assets import load_asset_library
+
+    load_asset_library(cfg)  # cheap; fails early on an unreadable assets or backgrounds folder
+    claim_directory(args.out, dataset_record(cfg, plan, str(args.preset)))
+
+    shards = plan.shards_of_task(task_index, num_tasks)
+    todo = plan.missing_shards(args.out, shards)
+    indices = [i for shard in todo for i in plan.scenes_of(shard)]
+    task = f"task {task_index} of {num_tasks}: " if num_tasks > 1 else ""
+    if not indices:
+        log.info("%s%d of %d shards already complete in %s; nothing to do",
+                 task, len(shards), len(shards), args.out)
+        return 0
+    workers = min(args.workers, len(indices))
+    log.info("%sgenerating %d scenes into %d shards of %s (%d already complete), %d worker(s)",
+             task, len(indices), len(todo), args.out, len(shards) - len(todo), workers)
+
+    start = time.perf_counter()
+    samples = generate_samples(cfg, indices, workers)
+    try:
+        with tqdm(total=len(indices), unit="scene", desc="datagen", dynamic_ncols=True) as bar:
+            for shard in todo:
+                with ShardWriter(args.out / plan.shard_name(shard)) as writer:
+                    for index in plan.scenes_of(shard):
+                        sample = next(samples)
+                        assert sample["__key__"] == scene_key(plan.split, index), "scenes out of order"
+                        writer.write(sample)
+                        bar.update()
+    finally:
+        samples.close()  # stops the worker pool at once on an error or Ctrl-C
+    seconds = time.perf_counter() - start
+    log.info("wrote %d scenes in %d shards to %s in %.0f s (%.2f scenes/s)",
+             len(indices), len(todo), args.out, seconds, len(indices) / seconds)
+    return 0

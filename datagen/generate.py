@@ -1,0 +1,119 @@
+"""One fully labelled scene: sample a description -> simulate -> render -> annotate.
+
+    cfg = c4d.config.load_config("datagen", "movi-e", overrides=["resolution=[128,128]"])
+    assets = datagen.assets.load_asset_library(cfg)   # once per worker process
+    scene = generate_scene(cfg, scene_index=7, assets=assets)
+
+The scene's randomness comes only from (cfg.seed, scene_index), so scene i of seed S is the same
+whichever process, worker or shard makes it.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+import datagen
+from datagen import annotate, geometry, render
+from datagen.assets import AssetLibrary, load_asset_library
+from datagen.sampling import SceneDescription, sample_scene
+from datagen.scene import Scene
+from datagen.simulate import SimulationResult, simulate
+
+
+def scene_rngs(seed: int, scene_index: int) -> dict[str, np.random.Generator]:
+    """Independent generators per stage, so changing one stage's draws leaves the others alone."""
+    children = np.random.SeedSequence([int(seed), int(scene_index)]).spawn(2)
+    return {"scene": np.random.default_rng(children[0]),
+            "tracks": np.random.default_rng(children[1])}
+
+
+def describe_and_simulate(cfg, scene_index: int, assets: AssetLibrary,
+                          timings: dict | None = None) -> tuple[SceneDescription, SimulationResult]:
+    """The first two stages: the scene's description and its physics (poses at every step)."""
+    clock = {} if timings is None else timings
+    start = time.perf_counter()
+    description = sample_scene(cfg, scene_rngs(cfg.seed, scene_index)["scene"], assets)
+    clock["sample"] = time.perf_counter() - start
+    start = time.perf_counter()
+    sim = simulate(description, assets, cfg)
+    clock["physics"] = time.perf_counter() - start
+    return description, sim
+
+
+def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
+                   timings: dict | None = None) -> Scene:
+    """Generate scene `scene_index` of preset `cfg` (a DictConfig from `load_config("datagen", ...)`).
+
+    `assets`: a library from `load_asset_library(cfg)` to reuse across scenes (built if None).
+    `timings`: if a dict is given, it receives seconds per stage (sample, physics, render, labels).
+    """
+    clock = {} if timings is None else timings
+    assets = load_asset_library(cfg) if assets is None else assets
+    description, sim = describe_and_simulate(cfg, scene_index, assets, clock)
+
+    start = time.perf_counter()
+    num_frames, height, width = description.num_frames, description.height, description.width
+    frame_times = np.arange(num_frames, dtype=np.float64)
+    object_to_world = sim.poses_at(frame_times)  # (K,T,4,4)
+    cam_to_world = description.camera.pose_at(frame_times, num_frames)  # (T,4,4)
+    K = geometry.intrinsics_from_lens(description.camera.focal_mm, description.camera.sensor_mm,
+                                      height, width)
+    intrinsics = np.broadcast_to(K, (num_frames, 3, 3))
+    renderer = render.SceneRenderer(description, sim.placed, assets, cfg)
+    depth = np.zeros((num_frames, height, width), np.float32)
+    segmentation = np.zeros((num_frames, height, width), np.int32)
+    rgb = np.zeros((num_frames, height, width, 3), np.uint8)
+    num_samples = render.num_blur_samples(description.motion_blur, cfg)
+    for t in range(num_frames):
+        depth[t], segmentation[t] = renderer.render_labels(object_to_world[:, t], cam_to_world[t])
+        if num_samples == 1:
+            rgb[t] = renderer.render_rgb(object_to_world[:, t], cam_to_world[t])
+        else:
+            times = render.shutter_times(t, description.motion_blur, num_samples)
+            rgb[t] = render.render_blurred(
+                renderer, sim.poses_at,
+                lambda ts: description.camera.pose_at(ts, num_frames), times)
+    clock["render"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    flow_fwd, flow_bwd = annotate.optical_flow(depth, segmentation, intrinsics, cam_to_world,
+                                               object_to_world)
+    threshold = float(cfg.mobility_threshold)
+    tracks = annotate.point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
+                                   scene_rngs(cfg.seed, scene_index)["tracks"], cfg, threshold)
+    clock["labels"] = time.perf_counter() - start
+
+    visible_pixels = np.bincount(segmentation.ravel(), minlength=len(sim.placed) + 1)[1:]
+    objects = []
+    for k, index in enumerate(sim.placed):
+        spec = description.objects[index]
+        objects.append({
+            "asset_id": spec.asset_id, "scale": spec.scale, "mass": spec.mass,
+            "friction": spec.friction, "restitution": spec.restitution, "tossed": spec.tossed,
+            "start_velocity": sim.start_velocities[k].tolist(),
+            "visible_pixels": int(visible_pixels[k]),
+        })
+    meta = {
+        "preset": str(cfg.preset), "seed": int(cfg.seed), "scene_index": int(scene_index),
+        "fps": int(description.fps), "resolution": [height, width],
+        "num_frames": num_frames, "split": str(cfg.split),
+        "motion_blur": description.motion_blur, "blur_samples": num_samples,
+        "generator": "datagen", "generator_version": datagen.__version__,
+        "mobility_threshold": threshold,
+        "physics": {"step_rate": int(cfg.physics.step_rate),
+                    "steps_per_frame": sim.steps_per_frame, "settle_steps": sim.settle_steps},
+        "flow_fwd_valid": [t < num_frames - 1 for t in range(num_frames)],
+        "flow_bwd_valid": [t > 0 for t in range(num_frames)],
+        **description.meta,
+        "placed_objects": len(sim.placed),
+    }
+    return Scene(
+        rgb=rgb, depth=depth, segmentation=segmentation, flow_fwd=flow_fwd, flow_bwd=flow_bwd,
+        intrinsics=intrinsics.astype(np.float32), cam_to_world=cam_to_world.astype(np.float32),
+        object_to_world=object_to_world.astype(np.float32), objects=objects,
+        tracks=tracks.tracks, occluded=tracks.occluded, query_frame=tracks.query_frame,
+        track_object=tracks.track_object, tracks_world=tracks.tracks_world,
+        displacement=tracks.displacement, moving=tracks.moving, meta=meta,
+    )

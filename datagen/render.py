@@ -1,0 +1,230 @@
+"""Rendering with pyrender on EGL (Mesa's software renderer works): RGB, z-depth, segmentation.
+
+- RGB: lit by a shadow-casting sun, a fill light and ambient light, 4x multisampled.
+- Labels: z-depth and instance segmentation from pyrender's segmentation pass, which renders
+  without multisampling, so every pixel holds the surface hit by the ray through its centre.
+- Motion blur (MOVi-F): the average of sub-frame renders at object poses interpolated between
+  physics steps and at the camera pose of the same instant, over a shutter centred on the frame
+  time. Labels are always rendered sharp at the frame time.
+
+Pixel convention: our K puts the top-left pixel centre at (0, 0); OpenGL puts it at (0.5, 0.5), so
+the principal point handed to pyrender is shifted by half a pixel. pyrender cameras look along -Z
+with +Y up (OpenGL), so an OpenCV camera-to-world pose is right-multiplied by diag(1, -1, -1, 1).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import trimesh
+
+from c4d.system import require_egl
+from datagen import geometry, textures
+from datagen.assets import Asset, AssetLibrary
+from datagen.sampling import SceneDescription
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@functools.lru_cache(maxsize=1)
+def _pyrender():
+    """Import pyrender after selecting EGL (must not be imported before `require_egl`)."""
+    require_egl()
+    import pyrender
+
+    # pyrender 0.1.45 still uses `np.infty`, which numpy 2 removed (only hit by `Mesh.bounds`
+    # of a mesh without primitives); restore the alias instead of patching pyrender.
+    if not hasattr(np, "infty"):
+        np.infty = np.inf
+    return pyrender
+
+
+@functools.lru_cache(maxsize=2)
+def _offscreen(width: int, height: int, shadow_map_size: int):
+    """One offscreen EGL context per worker process and image size, reused across scenes."""
+    pyrender = _pyrender()
+    # pyrender sizes every shadow map and the shadow pass viewport from this module constant.
+    pyrender.renderer.SHADOW_TEX_SZ = shadow_map_size
+    pyrender.light.SHADOW_TEX_SZ = shadow_map_size
+    return pyrender.OffscreenRenderer(width, height)
+
+
+def _frame_with_z(z_axis: np.ndarray) -> np.ndarray:
+    """A 4x4 rotation whose +Z axis is `z_axis` (for lights, which shine along their -Z)."""
+    z = z_axis / np.linalg.norm(z_axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return geometry.make_pose(np.stack([x, np.cross(z, x), z], axis=-1), np.zeros(3))
+
+
+def _textured_mesh(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, image: np.ndarray,
+                   roughness: float = 0.7):
+    """A pyrender mesh with a repeating texture; per-vertex normals from the triangle mesh."""
+    pyrender = _pyrender()
+    normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
+    texture = pyrender.Texture(
+        source=image, source_channels="RGB",
+        sampler=pyrender.Sampler(wrapS=pyrender.GLTF.REPEAT, wrapT=pyrender.GLTF.REPEAT))
+    material = pyrender.MetallicRoughnessMaterial(
+        baseColorTexture=texture, metallicFactor=0.0, roughnessFactor=roughness, doubleSided=True)
+    primitive = pyrender.Primitive(positions=vertices.astype(np.float32),
+                                   normals=normals.astype(np.float32),
+                                   texcoord_0=uv.astype(np.float32), indices=faces.astype(np.int32),
+                                   material=material)
+    return pyrender.Mesh([primitive])
+
+
+def object_mesh(asset: Asset, scale: float, texture_seed: int, uv_tiles: float,
+                texture_size: int):
+    """The render mesh of one object: its own texture, or a procedural one (box UVs if needed)."""
+    vertices, faces, uv, image = asset.vertices * scale, asset.faces, asset.uv, asset.texture
+    if image is None:
+        image = textures.procedural_texture(np.random.default_rng(texture_seed), texture_size)
+        if uv is None:
+            vertices, faces, uv = textures.box_uv(asset.vertices, asset.faces, uv_tiles)
+            vertices = vertices * scale
+        else:
+            uv = uv * uv_tiles
+    return _textured_mesh(vertices, faces, uv, image)
+
+
+def _grid_faces(rows: int, cols: int) -> np.ndarray:
+    """Triangles of a (rows x cols) vertex grid, (2*(rows-1)*(cols-1), 3)."""
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    return np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3),
+                           np.stack([b, c, d], -1).reshape(-1, 3)])
+
+
+def backdrop_meshes(radius: float, floor_tile: float, floor_image: np.ndarray,
+                    dome_image: np.ndarray, equirect: bool, rings: int = 24, sectors: int = 96):
+    """Floor disk (z = 0) and dome wall (half sphere) of `radius`, as two pyrender meshes.
+
+    Procedural backdrop: the floor texture repeats every `floor_tile` units and the wall texture
+    wraps around. `equirect`: both show one equirectangular image (lower half on the floor,
+    nadir at the centre), as a Kubric HDRI dome does.
+    """
+    azimuth = np.linspace(0, 2 * np.pi, sectors + 1)  # (S,) last column repeats the first
+    # Floor: rings of growing radius (fine near the centre, where the objects are).
+    r = radius * np.linspace(0, 1, rings + 1) ** 1.5  # (R,)
+    floor = np.stack([np.outer(r, np.cos(azimuth)), np.outer(r, np.sin(azimuth)),
+                      np.zeros((rings + 1, sectors + 1))], -1)  # (R,S,3)
+    # Wall: elevation from the horizon to the zenith.
+    elevation = np.linspace(0, np.pi / 2, rings + 1)
+    wall = radius * np.stack([np.outer(np.cos(elevation), np.cos(azimuth)),
+                              np.outer(np.cos(elevation), np.sin(azimuth)),
+                              np.outer(np.sin(elevation), np.ones(sectors + 1))], -1)  # (R,S,3)
+    u = np.broadcast_to(azimuth / (2 * np.pi), (rings + 1, sectors + 1))
+    if equirect:  # v = 0 at the top of the image (zenith), 1 at the bottom (nadir)
+        floor_uv = np.stack([u, 1.0 - 0.5 * (r / radius)[:, None] + 0 * u], -1)
+        wall_uv = np.stack([u, 0.5 - elevation[:, None] / np.pi + 0 * u], -1)
+    else:
+        floor_uv = floor[..., :2] / floor_tile
+        wall_uv = np.stack([u * round(2 * np.pi * radius / (4 * floor_tile)),
+                            wall[..., 2] / (4 * floor_tile)], -1)
+    faces = _grid_faces(rings + 1, sectors + 1)
+    return (_textured_mesh(floor.reshape(-1, 3), faces, floor_uv.reshape(-1, 2), floor_image, 0.9),
+            _textured_mesh(wall.reshape(-1, 3), faces, wall_uv.reshape(-1, 2), dome_image, 1.0))
+
+
+class SceneRenderer:
+    """A pyrender scene of one description; poses are set per render call."""
+
+    def __init__(self, description: SceneDescription, object_indices: list[int],
+                 assets: AssetLibrary, cfg):
+        pyrender = _pyrender()
+        self.height, self.width = description.height, description.width
+        self.renderer = _offscreen(self.width, self.height, int(cfg.lights.shadow_map_size))
+        self.scene = pyrender.Scene(ambient_light=np.full(3, description.ambient),
+                                    bg_color=np.zeros(4))
+        self.object_nodes = []
+        for index in object_indices:
+            spec = description.objects[index]
+            mesh = object_mesh(assets.get(spec.asset_id), spec.scale, spec.texture_seed,
+                               spec.uv_tiles, int(cfg.assets.texture_size))
+            self.object_nodes.append(self.scene.add(mesh))
+        # Backdrop: segment 0, never moves.
+        rng = np.random.default_rng(description.backdrop_seed)
+        if description.background_id is None:
+            floor_image = textures.procedural_texture(rng, 2 * int(cfg.assets.texture_size))
+            dome_image = textures.procedural_texture(rng, 2 * int(cfg.assets.texture_size))
+            equirect = False
+        else:
+            floor_image = dome_image = assets.background(description.background_id)
+            equirect = True
+        backdrop = [self.scene.add(mesh) for mesh in backdrop_meshes(
+            float(cfg.backdrop.dome_radius), float(cfg.backdrop.floor_tile), floor_image,
+            dome_image, equirect)]
+        # pyrender casts shadows from every directional light when asked to, so only the sun is
+        # directional; the fill is a distant point light with the same irradiance at the origin.
+        self.shadows = False
+        for light in description.lights:
+            if light.shadows:
+                node = pyrender.DirectionalLight(color=light.color, intensity=light.intensity)
+                self.scene.add(node, pose=_frame_with_z(-light.direction))
+                self.shadows = True
+            else:
+                distance = float(cfg.backdrop.dome_radius) / 2
+                node = pyrender.PointLight(color=light.color,
+                                           intensity=light.intensity * distance**2)
+                pose = geometry.make_pose(np.eye(3), -light.direction * distance)
+                self.scene.add(node, pose=pose)
+        K = geometry.intrinsics_from_lens(description.camera.focal_mm,
+                                          description.camera.sensor_mm, self.height, self.width)
+        camera = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5,
+                                           znear=float(cfg.camera.znear),
+                                           zfar=float(cfg.camera.zfar))
+        self.camera_node = self.scene.add(camera)
+        # Segment k (1-based) encoded as colour (k mod 256, k div 256, 0).
+        self.seg_colors = {node: np.zeros(3) for node in backdrop}
+        self.seg_colors.update({node: np.array([k % 256, k // 256, 0])
+                                for k, node in enumerate(self.object_nodes, start=1)})
+
+    def _set_poses(self, object_to_world: np.ndarray, cam_to_world: np.ndarray) -> None:
+        for node, pose in zip(self.object_nodes, object_to_world):
+            self.scene.set_pose(node, pose)
+        self.scene.set_pose(self.camera_node, cam_to_world @ OPENCV_TO_OPENGL)
+
+    def render_rgb(self, object_to_world: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
+        """uint8 (H,W,3) lit image. object_to_world (K,4,4), cam_to_world (4,4) OpenCV."""
+        pyrender = _pyrender()
+        self._set_poses(object_to_world, cam_to_world)
+        flags = pyrender.RenderFlags.SHADOWS_DIRECTIONAL if self.shadows else 0
+        color, _ = self.renderer.render(self.scene, flags=flags)
+        return np.ascontiguousarray(color[..., :3])
+
+    def render_labels(self, object_to_world: np.ndarray, cam_to_world: np.ndarray):
+        """z-depth float32 (H,W) and segmentation int32 (H,W) at the pixel centres."""
+        pyrender = _pyrender()
+        self._set_poses(object_to_world, cam_to_world)
+        color, depth = self.renderer.render(self.scene, flags=pyrender.RenderFlags.SEG,
+                                            seg_node_map=self.seg_colors)
+        segmentation = color[..., 0].astype(np.int32) + 256 * color[..., 1].astype(np.int32)
+        return depth.astype(np.float32), segmentation
+
+
+def shutter_times(frame: int, shutter: float, num_samples: int) -> np.ndarray:
+    """Sub-frame times (num_samples,) evenly spread over a shutter of `shutter` frames at `frame`."""
+    return frame + shutter * ((np.arange(num_samples) + 0.5) / num_samples - 0.5)
+
+
+def num_blur_samples(shutter: float, cfg) -> int:
+    """Sub-frame renders per frame for a shutter open `shutter` frames (1 = sharp)."""
+    if shutter <= 0:
+        return 1
+    wanted = int(np.ceil(shutter * cfg.blur.samples_per_frame))
+    return int(np.clip(wanted, 2, cfg.blur.max_samples))
+
+
+def render_blurred(renderer: SceneRenderer, object_poses, camera_poses, times: np.ndarray):
+    """Mean of sub-frame renders, rounded to uint8 (H,W,3).
+
+    object_poses(times) -> (K,n,4,4) and camera_poses(times) -> (n,4,4) give the poses.
+    """
+    objects, cameras = object_poses(times), camera_poses(times)  # (K,n,4,4), (n,4,4)
+    total = np.zeros((renderer.height, renderer.width, 3))
+    for i in range(len(times)):
+        total += renderer.render_rgb(objects[:, i], cameras[i])
+    return np.round(total / len(times)).astype(np.uint8)

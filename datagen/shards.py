@@ -1,0 +1,441 @@
+"""Scenes in webdataset tar shards: encode, write atomically, list and read back.
+
+One scene is one webdataset sample: tar members `<key>.<field>.<ext>` next to each other, where
+`<key>` is `{split}-{scene_index:08d}`. The layout and the encodings (chosen by measurement, see
+docs/FORMAT.md and docs/perf/datagen_io.md):
+
+- `rgb.png`: uint8 (T*H, W, 3), the T frames stacked vertically, lossless PNG.
+- `segmentation.png`: (T*H, W) 8-bit PNG (16-bit when an id exceeds 255), decoded to int32.
+- every other array: `<field>.npy.bsz`, lossless for any dtype (see `encode_array`).
+- `meta.json`, `objects.json`: UTF-8 JSON.
+A field that is `None` has no member and decodes to `None`.
+"""
+
+from __future__ import annotations
+
+import errno
+import glob
+import io
+import json
+import os
+import tarfile
+import zlib
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Sequence
+
+import cv2
+import numpy as np
+
+from c4d.errors import UserError
+from datagen.scene import Scene
+
+FORMAT_VERSION = 1
+ZLIB_LEVEL = 1  # level 6 saves < 5 % on float labels at half the encode speed (docs/perf)
+PNG_LEVEL = 1
+
+# field -> (dtype, ndim) of the contract (docs/FORMAT.md); `objects` and `meta` are JSON.
+ARRAY_FIELDS: dict[str, tuple[np.dtype, int]] = {
+    "rgb": (np.dtype(np.uint8), 4),
+    "depth": (np.dtype(np.float32), 3),
+    "segmentation": (np.dtype(np.int32), 3),
+    "flow_fwd": (np.dtype(np.float32), 4),
+    "flow_bwd": (np.dtype(np.float32), 4),
+    "intrinsics": (np.dtype(np.float32), 3),
+    "cam_to_world": (np.dtype(np.float32), 3),
+    "object_to_world": (np.dtype(np.float32), 4),
+    "tracks": (np.dtype(np.float32), 3),
+    "occluded": (np.dtype(np.bool_), 2),
+    "query_frame": (np.dtype(np.int32), 1),
+    "track_object": (np.dtype(np.int32), 1),
+    "tracks_world": (np.dtype(np.float32), 3),
+    "displacement": (np.dtype(np.float32), 2),
+    "moving": (np.dtype(np.bool_), 2),
+}
+JSON_FIELDS = ("meta", "objects")
+IMAGE_FIELDS = {"rgb": "rgb.png", "segmentation": "segmentation.png"}
+
+
+def member_suffix(name: str) -> str:
+    """The tar member suffix (webdataset extension) that holds field `name`."""
+    if name in IMAGE_FIELDS:
+        return IMAGE_FIELDS[name]
+    return f"{name}.json" if name in JSON_FIELDS else f"{name}.npy.bsz"
+
+
+def scene_key(split: str, scene_index: int) -> str:
+    """The webdataset key of a scene: no dots, sortable, e.g. `train-00000042`."""
+    return f"{split}-{scene_index:08d}"
+
+
+# --- arrays -------------------------------------------------------------------------------------
+
+
+def encode_array(array: np.ndarray) -> bytes:
+    """Lossless `.npy.bsz`: zlib of (a .npy v1 header, then the data byte-shuffled).
+
+    Byte shuffling stores byte 0 of every element, then byte 1, ...: the sign/exponent bytes of
+    float32 labels then form long, very compressible runs, which plain zlib of the .npy misses.
+    """
+    array = np.ascontiguousarray(array)
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, np.lib.format.header_data_from_array_1_0(array))
+    planes = array.reshape(-1).view(np.uint8).reshape(-1, array.itemsize).T  # (itemsize, n)
+    return zlib.compress(header.getvalue() + np.ascontiguousarray(planes).tobytes(), ZLIB_LEVEL)
+
+
+def decode_array(data: bytes) -> np.ndarray:
+    """Inverse of `encode_array`."""
+    raw = io.BytesIO(zlib.decompress(data))
+    np.lib.format.read_magic(raw)
+    shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(raw)
+    if fortran_order:
+        raise ValueError("Fortran-ordered arrays are not part of the format")
+    count = int(np.prod(shape, dtype=np.int64))
+    planes = np.frombuffer(raw.getbuffer()[raw.tell():], np.uint8)  # (itemsize * count,)
+    if planes.size != count * dtype.itemsize:
+        raise ValueError(f"array data has {planes.size} bytes, expected {count * dtype.itemsize}")
+    data_bytes = np.ascontiguousarray(planes.reshape(dtype.itemsize, count).T)  # (count, itemsize)
+    return data_bytes.view(dtype).reshape(shape)
+
+
+def _encode_png(image: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
+    if not ok:
+        raise ValueError(f"PNG encoding failed for an image of shape {image.shape}")
+    return buf.tobytes()
+
+
+def _decode_png(data: bytes) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError("not a readable PNG image")
+    return image
+
+
+def encode_rgb(rgb: np.ndarray) -> bytes:
+    """uint8 (T,H,W,3) RGB -> one PNG of the frames stacked vertically, (T*H, W, 3)."""
+    t, h, w, _ = rgb.shape
+    return _encode_png(rgb.reshape(t * h, w, 3)[..., ::-1])  # OpenCV writes BGR
+
+
+def decode_rgb(data: bytes, num_frames: int) -> np.ndarray:
+    """Inverse of `encode_rgb`: uint8 (T,H,W,3) RGB."""
+    image = _decode_png(data)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] % num_frames:
+        raise ValueError(f"rgb image of shape {image.shape} does not hold {num_frames} RGB frames")
+    return np.ascontiguousarray(image[..., ::-1]).reshape(num_frames, -1, *image.shape[1:])
+
+
+def encode_segmentation(segmentation: np.ndarray) -> bytes:
+    """int32 (T,H,W) ids -> one 8-bit PNG (16-bit if an id exceeds 255) of the stacked frames."""
+    t, h, w = segmentation.shape
+    low, high = int(segmentation.min(initial=0)), int(segmentation.max(initial=0))
+    if low < 0 or high > np.iinfo(np.uint16).max:
+        raise ValueError(f"segmentation ids must lie in [0, 65535], got [{low}, {high}]")
+    dtype = np.uint8 if high <= np.iinfo(np.uint8).max else np.uint16
+    return _encode_png(segmentation.reshape(t * h, w).astype(dtype))
+
+
+def decode_segmentation(data: bytes, num_frames: int) -> np.ndarray:
+    """Inverse of `encode_segmentation`: int32 (T,H,W)."""
+    image = _decode_png(data)
+    if image.ndim != 2 or image.shape[0] % num_frames:
+        raise ValueError(f"segmentation image of shape {image.shape} does not hold {num_frames} frames")
+    return image.astype(np.int32).reshape(num_frames, -1, image.shape[1])
+
+
+# --- JSON ---------------------------------------------------------------------------------------
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def to_json_bytes(value: Any) -> bytes:
+    """UTF-8 JSON; numpy scalars and arrays become numbers and lists, tuples become lists."""
+    return json.dumps(value, default=_json_default, ensure_ascii=False).encode("utf-8")
+
+
+# --- scenes -------------------------------------------------------------------------------------
+
+
+def _check_scene(scene: Scene) -> None:
+    """Raise ValueError if an array field breaks the contract's dtype or rank (a generator bug)."""
+    for name, (dtype, ndim) in ARRAY_FIELDS.items():
+        value = getattr(scene, name)
+        if value is None:
+            continue
+        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.ndim != ndim:
+            got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value)
+            raise ValueError(f"Scene.{name} must be a {dtype} array of rank {ndim}, got {got}")
+    frames = {name: getattr(scene, name).shape[0] for name in ("rgb", "intrinsics", "cam_to_world")}
+    if len(set(frames.values())) != 1:
+        raise ValueError(f"Scene fields disagree on the number of frames: {frames}")
+
+
+def encode_scene(scene: Scene, key: str) -> dict[str, Any]:
+    """A webdataset sample for `scene`: {'__key__': key, '<field>.<ext>': bytes, ...}.
+
+    Members follow the Scene field order, so `meta.json` comes last: a shard cut anywhere inside
+    a scene loses that scene's meta, which `decode_scene` reports.
+    """
+    if "." in key or "/" in key:
+        raise ValueError(f"a sample key may contain neither '.' nor '/': {key!r}")
+    _check_scene(scene)
+    sample: dict[str, Any] = {"__key__": key}
+    for name in Scene.field_names():
+        value = getattr(scene, name)
+        if value is None:
+            continue
+        if name == "rgb":
+            data = encode_rgb(value)
+        elif name == "segmentation":
+            data = encode_segmentation(value)
+        elif name in JSON_FIELDS:
+            data = to_json_bytes(value)
+        else:
+            data = encode_array(value)
+        sample[member_suffix(name)] = data
+    return sample
+
+
+def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) -> Scene:
+    """The `Scene` of a webdataset sample (raw bytes per member, as `encode_scene` makes them).
+
+    `fields`: decode only these Scene fields (the others are None), e.g. to skip depth and flow
+    when training. Raises `UserError` naming the sample key if a member is missing or corrupt.
+    """
+    key = sample.get("__key__", "?")
+    where = f" in {sample['__url__']}" if "__url__" in sample else ""
+    wanted = set(Scene.field_names()) if fields is None else set(fields)
+    unknown = wanted - set(Scene.field_names())
+    if unknown:
+        raise UserError(f"unknown Scene fields {sorted(unknown)}; choose from {Scene.field_names()}")
+    for required in ("intrinsics", "meta"):
+        if member_suffix(required) not in sample:
+            raise UserError(
+                f"scene {key!r}{where} has no {member_suffix(required)!r} member, so the shard "
+                "is truncated or was not written by `c4d datagen`; regenerate it"
+            )
+    values: dict[str, Any] = {}
+    name = "intrinsics"
+    try:
+        num_frames = decode_array(sample[member_suffix("intrinsics")]).shape[0]
+        for name in Scene.field_names():
+            data = sample.get(member_suffix(name))
+            if name not in wanted or data is None:
+                values[name] = None
+                continue
+            if name == "rgb":
+                values[name] = decode_rgb(data, num_frames)
+            elif name == "segmentation":
+                values[name] = decode_segmentation(data, num_frames)
+            elif name in JSON_FIELDS:
+                values[name] = json.loads(bytes(data).decode("utf-8"))
+            else:
+                values[name] = decode_array(data)
+    except (ValueError, TypeError, zlib.error, UnicodeDecodeError) as exc:
+        raise UserError(
+            f"scene {key!r}{where}: member {member_suffix(name)!r} is corrupt ({exc}); "
+            "regenerate this shard (delete it and rerun the same `c4d datagen` command)"
+        ) from exc
+    return Scene(**values)
+
+
+# --- shard files --------------------------------------------------------------------------------
+
+
+def _tar_info(name: str, size: int) -> tarfile.TarInfo:
+    """A tar header with fixed owner, mode and time, so equal scenes give byte-equal shards."""
+    info = tarfile.TarInfo(name)
+    info.size, info.mode, info.mtime = size, 0o444, 0
+    info.uname = info.gname = ""
+    return info
+
+
+def disk_error(path: str | Path, exc: OSError) -> UserError:
+    """The `UserError` for a failed write of `path` (disk full, permissions, read-only disk)."""
+    if exc.errno == errno.ENOSPC:
+        return UserError(
+            f"no space left on the device while writing {path}; free some space or choose another "
+            "--out, then run the same command again: finished shards are kept"
+        )
+    return UserError(f"cannot write {path}: {exc.strerror or exc}; choose a writable --out")
+
+
+class ShardWriter:
+    """Writes one shard under a temporary name and renames it into place on `close()`.
+
+    A crash leaves at most `<name>.partial`, never a half-written `<name>`; a stale partial file
+    is overwritten by the next attempt. Use as a context manager: on an exception the partial
+    file is removed and disk errors become `UserError`.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.count = 0
+        try:
+            self._file = open(self.partial, "wb")
+        except OSError as exc:
+            raise disk_error(self.partial, exc) from exc
+        self._tar = tarfile.open(fileobj=self._file, mode="w", format=tarfile.USTAR_FORMAT)
+
+    def write(self, sample: dict[str, Any]) -> None:
+        """Append one sample (`__key__` plus `suffix -> bytes`), members in the sample's order."""
+        key = sample["__key__"]
+        try:
+            for suffix, data in sample.items():
+                if suffix.startswith("__"):
+                    continue
+                self._tar.addfile(_tar_info(f"{key}.{suffix}", len(data)), io.BytesIO(data))
+        except OSError as exc:
+            raise disk_error(self.partial, exc) from exc
+        self.count += 1
+
+    def close(self) -> Path:
+        """Finish the tar, flush it to disk and rename it to its final name."""
+        try:
+            self._tar.close()
+            self._file.flush()
+            os.fsync(self._file.fileno())
+            self._file.close()
+            os.replace(self.partial, self.path)
+        except OSError as exc:
+            raise disk_error(self.path, exc) from exc
+        return self.path
+
+    def abort(self) -> None:
+        """Drop the partial file (after an error)."""
+        for close in (self._tar.close, self._file.close):
+            try:
+                close()
+            except OSError:
+                pass  # the file is being deleted anyway (e.g. the disk is full)
+        self.partial.unlink(missing_ok=True)
+
+    def __enter__(self) -> "ShardWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_json_atomic(path: str | Path, value: Any) -> None:
+    """Write `value` as indented JSON to `path` through a temporary file and `os.replace`."""
+    path = Path(path)
+    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
+    try:
+        with open(partial, "w", encoding="utf-8") as f:
+            json.dump(value, f, indent=2, default=_json_default)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(partial, path)
+    except OSError as exc:
+        partial.unlink(missing_ok=True)
+        raise disk_error(path, exc) from exc
+
+
+# --- reading ------------------------------------------------------------------------------------
+
+
+def _is_glob(text: str) -> bool:
+    return any(c in text for c in "*?[")
+
+
+def list_shards(source: str | Path | Sequence[str | Path], split: str | None = None) -> list[Path]:
+    """Shard paths of `source`, in reading order.
+
+    `source`: a directory (its `*.tar`, sorted; only `{split}-*.tar` when `split` is given), a
+    shard path, a glob (sorted), or a list of these (kept in the given order).
+    """
+    if isinstance(source, (list, tuple)):
+        return [shard for item in source for shard in list_shards(item, split)]
+    text = os.fspath(source)
+    if _is_glob(text):
+        shards = sorted(Path(p) for p in glob.glob(text) if p.endswith(".tar"))
+        if not shards:
+            raise UserError(f"no shard matches {text!r}; check the pattern (shards end in .tar)")
+        return shards
+    path = Path(text)
+    if path.is_dir():
+        shards = sorted(path.glob(f"{split}-*.tar" if split else "*.tar"))
+        if not shards:
+            which = f" of split {split!r}" if split else ""
+            raise UserError(f"no shards{which} in directory {path}; generate some with `c4d datagen`")
+        splits = sorted({p.name.rsplit("-", 1)[0] for p in shards})
+        if len(splits) > 1:
+            raise UserError(
+                f"directory {path} holds shards of several splits ({', '.join(splits)}); "
+                "pass split=... or a glob such as DIR/train-*.tar"
+            )
+        return shards
+    if path.is_file():
+        return [path]
+    raise UserError(f"shard source {text!r} does not exist; give a directory, a .tar shard or a glob")
+
+
+def iter_samples(shard: str | Path) -> Iterator[dict[str, Any]]:
+    """Webdataset samples of one shard, in tar order, each with `__key__` and `__url__`.
+
+    Raises `UserError` naming the shard and the sample key if the tar is truncated or corrupt.
+    """
+    shard = str(shard)
+    sample: dict[str, Any] = {}
+    name = ""
+    try:
+        with tarfile.open(shard, mode="r|") as tar:
+            for member in tar:
+                name = member.name
+                if not member.isfile():
+                    continue
+                key, _, suffix = os.path.basename(name).partition(".")
+                if sample and key != sample["__key__"]:
+                    yield sample
+                    sample = {}
+                sample.setdefault("__key__", key)
+                sample.setdefault("__url__", shard)
+                sample[suffix] = tar.extractfile(member).read()
+            end = tar.offset  # where the end-of-archive marker (two zero blocks) must follow
+        with open(shard, "rb") as f:
+            f.seek(end)
+            if f.read(2 * tarfile.BLOCKSIZE) != bytes(2 * tarfile.BLOCKSIZE):
+                raise UserError(
+                    f"shard {shard} is truncated or corrupt after member {name!r} (scene "
+                    f"{name.partition('.')[0]!r}): no end-of-archive marker follows; delete it "
+                    "and rerun `c4d datagen`"
+                )
+    except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
+        where = f"at member {name!r}" if name else "at its start"
+        raise UserError(
+            f"shard {shard} is corrupt or truncated {where} (scene "
+            f"{(name.partition('.')[0] or '?')!r}): {exc}; delete it and rerun `c4d datagen`"
+        ) from exc
+    if sample:
+        yield sample
+
+
+def read_scenes(
+    source: str | Path | Sequence[str | Path],
+    split: str | None = None,
+    fields: Iterable[str] | None = None,
+) -> Iterator[Scene]:
+    """Yield the `Scene`s of `source` in a deterministic order (shard order, then tar order).
+
+    `source`: a directory of shards, a shard path, a glob, or a list of these (see `list_shards`).
+    `fields`: decode only these Scene fields, the others are None (default: all).
+    """
+    fields = None if fields is None else list(fields)
+    for shard in list_shards(source, split):
+        for sample in iter_samples(shard):
+            yield decode_scene(sample, fields)

@@ -1,0 +1,156 @@
+"""Rigid-body physics of a scene description with pybullet (240 Hz, gravity -10 along Z).
+
+Kubric's recipe: static objects are placed without overlap and settle (friction 1, restitution 0)
+before the toss; then they get friction/restitution 0.5/0.5, their velocities are zeroed, the
+tossed objects are placed among them and thrown. Poses are recorded at every physics step from the
+toss (time -1, in frames) to time T, so sub-frame poses for motion blur come straight from physics.
+
+Deviations from Kubric (documented in docs/FORMAT.md): collision shapes are convex hulls of the
+visual meshes (not VHACD decompositions), mass is density x hull volume at the object's scale (not
+the unscaled GSO mass), and settling ends early once every object is at rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as pb
+
+from datagen import geometry
+from datagen.assets import AssetLibrary
+from datagen.sampling import SceneDescription
+
+
+@dataclass
+class SimulationResult:
+    placed: list[int]  # indices into description.objects of the objects in the scene (K of them)
+    steps_per_frame: int
+    positions: np.ndarray  # float64 (K,S,3) at every physics step, S = (T+1)*steps_per_frame + 1
+    quaternions: np.ndarray  # float64 (K,S,4) (w,x,y,z)
+    start_velocities: np.ndarray  # float64 (K,3) at the toss (units/s)
+    settle_steps: int
+
+    def poses_at(self, times: np.ndarray) -> np.ndarray:
+        """Object-to-world (K,len(times),4,4) at frame times in [-1, T], interpolated between steps."""
+        steps = (np.asarray(times, dtype=np.float64) + 1.0) * self.steps_per_frame  # (n,)
+        lo = np.clip(np.floor(steps).astype(int), 0, self.positions.shape[1] - 1)
+        hi = np.minimum(lo + 1, self.positions.shape[1] - 1)
+        alpha = steps - lo  # (n,)
+        pos = (1 - alpha[:, None]) * self.positions[:, lo] + alpha[:, None] * self.positions[:, hi]
+        quat = geometry.quat_slerp(self.quaternions[:, lo], self.quaternions[:, hi], alpha)
+        return geometry.make_pose(geometry.quat_to_matrix(quat), pos)  # (K,n,4,4)
+
+
+def _configure(client: int, cfg) -> None:
+    # Kubric's engine parameters (they avoid bullet3#3094, objects sticking to walls).
+    pb.setPhysicsEngineParameter(
+        fixedTimeStep=1.0 / cfg.physics.step_rate, restitutionVelocityThreshold=0,
+        warmStartingFactor=0, useSplitImpulse=True, contactSlop=0, enableConeFriction=False,
+        deterministicOverlappingPairs=True, physicsClientId=client)
+    pb.setGravity(0, 0, float(cfg.physics.gravity), physicsClientId=client)
+
+
+def _overlaps(client: int, body: int, others: list[int]) -> bool:
+    return any(pb.getClosestPoints(body, other, 0.0, physicsClientId=client) for other in others)
+
+
+def _place(client: int, body: int, candidates: np.ndarray, others: list[int]) -> bool:
+    """Move `body` to the first candidate pose touching none of `others`; False if none is free."""
+    for candidate in candidates:
+        pb.resetBasePositionAndOrientation(body, candidate[:3].tolist(),
+                                           geometry.quat_to_xyzw(candidate[3:]).tolist(),
+                                           physicsClientId=client)
+        pb.performCollisionDetection(physicsClientId=client)
+        if not _overlaps(client, body, others):
+            return True
+    return False
+
+
+def _max_speed(client: int, bodies: list[int]) -> float:
+    speeds = [0.0]
+    for body in bodies:
+        linear, angular = pb.getBaseVelocity(body, physicsClientId=client)
+        speeds += [float(np.linalg.norm(linear)), float(np.linalg.norm(angular))]
+    return max(speeds)
+
+
+def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> SimulationResult:
+    """Place, settle, toss and simulate; returns poses at every step from time -1 to time T."""
+    steps_per_frame = int(round(cfg.physics.step_rate / description.fps))
+    client = pb.connect(pb.DIRECT)
+    try:
+        _configure(client, cfg)
+        floor_shape = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=client)
+        floor = pb.createMultiBody(0, floor_shape, physicsClientId=client)
+        pb.changeDynamics(floor, -1, lateralFriction=cfg.objects.settle_friction,
+                          restitution=cfg.objects.settle_restitution, physicsClientId=client)
+        bodies: dict[int, int] = {}  # object index -> body id
+
+        def add(index: int, friction: float, restitution: float, damping: float) -> None:
+            spec = description.objects[index]
+            asset = assets.get(spec.asset_id)
+            shape = pb.createCollisionShape(
+                pb.GEOM_MESH, vertices=asset.hull_vertices.tolist(), meshScale=[spec.scale] * 3,
+                physicsClientId=client)
+            body = pb.createMultiBody(spec.mass, shape, useMaximalCoordinates=True,
+                                      physicsClientId=client)
+            pb.changeDynamics(body, -1, lateralFriction=friction, restitution=restitution,
+                              contactProcessingThreshold=0, linearDamping=damping,
+                              angularDamping=damping, physicsClientId=client)
+            if _place(client, body, spec.candidates, [floor] + list(bodies.values())):
+                bodies[index] = body
+            else:
+                pb.removeBody(body, physicsClientId=client)
+
+        static = [i for i, o in enumerate(description.objects) if not o.tossed]
+        for i in static:
+            add(i, cfg.objects.settle_friction, cfg.objects.settle_restitution,
+                cfg.physics.settle_damping)
+
+        # Settle the static objects, checking once per frame whether everything is at rest.
+        settle_steps = 0
+        for _ in range(int(cfg.physics.settle_frames)):
+            for _ in range(steps_per_frame):
+                pb.stepSimulation(physicsClientId=client)
+            settle_steps += steps_per_frame
+            if _max_speed(client, list(bodies.values())) < cfg.physics.settle_speed:
+                break
+        for i, body in bodies.items():
+            spec = description.objects[i]
+            pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=client)
+            pb.changeDynamics(body, -1, lateralFriction=spec.friction, restitution=spec.restitution,
+                              linearDamping=cfg.physics.damping, angularDamping=cfg.physics.damping,
+                              physicsClientId=client)
+        pb.changeDynamics(floor, -1, lateralFriction=cfg.physics.floor_friction,
+                          restitution=cfg.physics.floor_restitution, physicsClientId=client)
+
+        for i, spec in enumerate(description.objects):
+            if spec.tossed:
+                add(i, spec.friction, spec.restitution, cfg.physics.damping)
+                if i in bodies:
+                    position, _ = pb.getBasePositionAndOrientation(bodies[i],
+                                                                   physicsClientId=client)
+                    velocity = spec.velocity - np.array([position[0], position[1], 0.0])
+                    pb.resetBaseVelocity(bodies[i], velocity.tolist(), [0, 0, 0],
+                                         physicsClientId=client)
+
+        placed = sorted(bodies)
+        num_steps = (description.num_frames + 1) * steps_per_frame + 1
+        positions = np.zeros((len(placed), num_steps, 3))
+        quats_xyzw = np.zeros((len(placed), num_steps, 4))
+        start_velocities = np.array(
+            [pb.getBaseVelocity(bodies[i], physicsClientId=client)[0] for i in placed]
+        ).reshape(-1, 3)
+        for step in range(num_steps):
+            if step:
+                pb.stepSimulation(physicsClientId=client)
+            for k, i in enumerate(placed):
+                position, orientation = pb.getBasePositionAndOrientation(
+                    bodies[i], physicsClientId=client)
+                positions[k, step] = position
+                quats_xyzw[k, step] = orientation
+    finally:
+        pb.disconnect(physicsClientId=client)
+    return SimulationResult(placed, steps_per_frame, positions, geometry.quat_from_xyzw(quats_xyzw),
+                            start_velocities, settle_steps)

@@ -1,0 +1,450 @@
+"""Pictures of labels and tracks: colourised depth, flow and segmentation, track overlays, videos.
+
+numpy and OpenCV only (datagen never imports torch), so every package can draw with the same code.
+Images are RGB uint8 throughout: (H,W,3) for one picture, (T,H,W,3) for a video.
+
+Track overlays (`draw_tracks`) colour each point by its mobility:
+    static  -> STATIC_COLOR (blue),  moving -> MOVING_COLOR (red),
+    a probability in between blends the two; a filled dot is visible, a hollow ring occluded.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import contextlib
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+STATIC_COLOR = (40, 120, 255)  # RGB: points that stay put in the world
+MOVING_COLOR = (255, 50, 40)  # RGB: points whose world position changes
+TRACK_LEGEND = {"static": STATIC_COLOR, "moving": MOVING_COLOR}
+BACKGROUND_SEGMENT_COLOR = (60, 60, 60)  # RGB of segmentation id 0 (floor, dome)
+INVALID_COLOR = (0, 0, 0)  # RGB of pixels without a valid value (depth <= 0, NaN)
+
+_SUBPIXEL_BITS = 4  # cv2 drawing with fractional coordinates: positions scaled by 2**4
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+# --------------------------------------------------------------------------------------------
+# Colour maps
+# --------------------------------------------------------------------------------------------
+
+
+def _finite_range(values: np.ndarray, percentiles: tuple[float, float]) -> tuple[float, float]:
+    """Robust (low, high) of the finite entries; (0, 1) when there are none."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return 0.0, 1.0
+    low, high = np.percentile(finite, percentiles)
+    return float(low), float(max(high, low + 1e-6))
+
+
+def colorize_depth(
+    depth: np.ndarray,
+    vmin: float | None = None,
+    vmax: float | None = None,
+    inverse: bool = True,
+    colormap: int = cv2.COLORMAP_TURBO,
+) -> np.ndarray:
+    """Depth (...,H,W) float in scene units -> RGB uint8 (...,H,W,3).
+
+    One range for the whole array, so a video keeps its colours over time: by default the 2nd to
+    98th percentile of valid values. With `inverse` (default) near is red and far blue, plotting
+    1/depth the way disparity maps are shown. Pixels with depth <= 0 or not finite are black.
+    """
+    depth = np.asarray(depth, dtype=np.float32)
+    valid = np.isfinite(depth) & (depth > 0)
+    safe = np.where(valid, depth, 1.0)
+    values = np.where(valid, 1.0 / safe if inverse else safe, np.nan)
+    if vmin is not None and vmax is not None:
+        low, high = (1.0 / vmax, 1.0 / vmin) if inverse else (vmin, vmax)
+    else:
+        low, high = _finite_range(values, (2.0, 98.0))
+    scaled = np.clip((values - low) / (high - low), 0.0, 1.0)
+    if not inverse:
+        scaled = 1.0 - scaled  # near stays red either way
+    gray = np.nan_to_num(scaled * 255.0, nan=0.0).astype(np.uint8)
+    flat = gray.reshape(-1, gray.shape[-1])  # applyColorMap wants 2-D
+    rgb = cv2.applyColorMap(flat, colormap)[..., ::-1].reshape(*gray.shape, 3)
+    rgb = np.ascontiguousarray(rgb)
+    rgb[~valid] = INVALID_COLOR
+    return rgb
+
+
+def _flow_color_wheel() -> np.ndarray:
+    """The Middlebury optical-flow colour wheel (Baker et al. 2007): (55, 3) float RGB in [0, 1].
+
+    Hue segments red->yellow->green->cyan->blue->magenta->red with 15, 6, 4, 11, 13, 6 steps,
+    spaced so perceptually similar directions get similar colours.
+    """
+    segments = [(15, (1, 0, 0), (1, 1, 0)), (6, (1, 1, 0), (0, 1, 0)), (4, (0, 1, 0), (0, 1, 1)),
+                (11, (0, 1, 1), (0, 0, 1)), (13, (0, 0, 1), (1, 0, 1)), (6, (1, 0, 1), (1, 0, 0))]
+    rows = []
+    for steps, start, end in segments:
+        frac = np.arange(steps)[:, None] / steps  # (steps,1)
+        rows.append((1 - frac) * np.array(start) + frac * np.array(end))
+    return np.concatenate(rows).astype(np.float32)
+
+
+_WHEEL = _flow_color_wheel()
+
+
+def colorize_flow(flow: np.ndarray, max_magnitude: float | None = None) -> np.ndarray:
+    """Optical flow (...,H,W,2) as (dx, dy) pixels -> RGB uint8 (...,H,W,3) on the standard wheel.
+
+    Direction is hue, magnitude is saturation: zero flow is white, flow of `max_magnitude`
+    (default: the largest finite magnitude in the whole array) fully saturated; longer vectors
+    are darkened. Non-finite vectors are black.
+    """
+    flow = np.asarray(flow, dtype=np.float32)
+    dx, dy = flow[..., 0], flow[..., 1]
+    valid = np.isfinite(dx) & np.isfinite(dy)
+    dx, dy = np.where(valid, dx, 0.0), np.where(valid, dy, 0.0)
+    magnitude = np.hypot(dx, dy)
+    if max_magnitude is None:
+        max_magnitude = float(magnitude.max()) if magnitude.size else 0.0
+    radius = magnitude / max(max_magnitude, 1e-6)
+
+    n = len(_WHEEL)
+    position = (np.arctan2(-dy, -dx) / np.pi + 1.0) / 2.0 * (n - 1)  # angle -> [0, n-1]
+    i0 = np.floor(position).astype(np.int64)
+    i1 = (i0 + 1) % n
+    frac = (position - i0)[..., None]
+    color = (1 - frac) * _WHEEL[i0] + frac * _WHEEL[i1]  # (...,3) fully saturated hue
+    inside = (radius <= 1.0)[..., None]
+    r = radius[..., None]
+    color = np.where(inside, 1.0 - r * (1.0 - color), color * 0.75)
+    rgb = np.round(color * 255.0).astype(np.uint8)
+    rgb[~valid] = INVALID_COLOR
+    return rgb
+
+
+def segment_palette(num_ids: int) -> np.ndarray:
+    """Stable colours for segment ids 0..num_ids-1: uint8 (num_ids, 3) RGB.
+
+    Id 0 (background) is dark grey; id k > 0 steps the hue by the golden ratio, so neighbouring
+    ids differ strongly and an id keeps its colour whatever the number of objects.
+    """
+    palette = np.empty((max(num_ids, 1), 3), dtype=np.uint8)
+    palette[0] = BACKGROUND_SEGMENT_COLOR
+    for k in range(1, num_ids):
+        hue = (k * 0.618033988749895) % 1.0
+        value = 0.95 if k % 2 else 0.75
+        palette[k] = np.round(np.array(colorsys.hsv_to_rgb(hue, 0.8, value)) * 255)
+    return palette
+
+
+def colorize_segmentation(segmentation: np.ndarray) -> np.ndarray:
+    """Integer ids (...,H,W) -> RGB uint8 (...,H,W,3) with `segment_palette` (negative ids black)."""
+    segmentation = np.asarray(segmentation)
+    ids = segmentation.astype(np.int64)
+    palette = segment_palette(int(ids.max()) + 1 if ids.size else 1)
+    rgb = palette[np.clip(ids, 0, None)]
+    rgb[ids < 0] = INVALID_COLOR
+    return rgb
+
+
+def colorize_mask(mask: np.ndarray, color: Sequence[int] = MOVING_COLOR) -> np.ndarray:
+    """Boolean or [0,1] mask (...,H,W) -> RGB uint8 (...,H,W,3): black where 0, `color` where 1."""
+    weight = np.asarray(mask, dtype=np.float32)[..., None]
+    return np.round(weight * np.asarray(color, dtype=np.float32)).astype(np.uint8)
+
+
+def blend(image: np.ndarray, overlay: np.ndarray, alpha: float = 0.5) -> np.ndarray:
+    """Mix two RGB uint8 arrays of equal shape: (1 - alpha) * image + alpha * overlay."""
+    mixed = (1.0 - alpha) * image.astype(np.float32) + alpha * overlay.astype(np.float32)
+    return np.round(mixed).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------
+# Track overlays
+# --------------------------------------------------------------------------------------------
+
+
+def track_colors(moving: np.ndarray) -> np.ndarray:
+    """Mobility (T,N) bool or probability in [0,1] -> RGB float (T,N,3) blending static and moving."""
+    p = np.clip(np.nan_to_num(np.asarray(moving, dtype=np.float32)), 0.0, 1.0)[..., None]
+    return (1.0 - p) * np.asarray(STATIC_COLOR, np.float32) + p * np.asarray(MOVING_COLOR, np.float32)
+
+
+def _identity_colors(num_tracks: int) -> np.ndarray:
+    """One fixed colour per track, for overlays without a mobility label: (N,3) float RGB."""
+    return segment_palette(num_tracks + 1)[1:].astype(np.float32)
+
+
+def _fixed(points: np.ndarray) -> np.ndarray:
+    """(..., 2) float pixel coordinates -> int coordinates for cv2's sub-pixel drawing."""
+    return np.round(points * (1 << _SUBPIXEL_BITS)).astype(np.int64)
+
+
+def draw_tracks(
+    frames: np.ndarray,
+    tracks: np.ndarray,
+    visible: np.ndarray | None = None,
+    moving: np.ndarray | None = None,
+    show_occluded: bool = True,
+    trail: int = 0,
+    radius: float | None = None,
+    legend: bool = False,
+) -> np.ndarray:
+    """Draw point tracks on a video; returns a new RGB uint8 (T,H,W,3), `frames` is not changed.
+
+    Layout is time first, like the tracker's output: `tracks` float (T,N,2) as (x, y) pixels with
+    pixel centres at integer coordinates; `visible` bool (T,N) (default all visible); `moving`
+    (T,N) bool or probability (default None: one fixed colour per track instead of mobility).
+    A `Scene` stores tracks as (N,T,2): pass `scene.tracks.transpose(1, 0, 2)`,
+    `~scene.occluded.T`, `scene.moving.T`.
+
+    Visible points are filled dots; occluded points are hollow rings, or left out when
+    `show_occluded` is False. `trail` > 0 draws each track's last `trail` visible steps as a
+    polyline. `radius` defaults to about 1% of the image diagonal. `legend` writes the colour key.
+    """
+    frames = np.asarray(frames)
+    tracks = np.asarray(tracks, dtype=np.float32)
+    num_frames, height, width = frames.shape[:3]
+    if tracks.ndim != 3 or tracks.shape[0] != num_frames or tracks.shape[2] != 2:
+        raise ValueError(f"tracks must be (T={num_frames},N,2), got {tracks.shape}")
+    num_tracks = tracks.shape[1]
+    visible = np.ones((num_frames, num_tracks), bool) if visible is None else np.asarray(visible, bool)
+    if moving is None:
+        colors = np.broadcast_to(_identity_colors(num_tracks), (num_frames, num_tracks, 3))
+    else:
+        colors = track_colors(moving)  # (T,N,3)
+    if radius is None:
+        radius = max(1.5, 0.01 * float(np.hypot(height, width)))
+    r_fixed = int(round(radius * (1 << _SUBPIXEL_BITS)))
+    finite = np.isfinite(tracks).all(axis=-1)  # (T,N)
+    fixed = _fixed(np.where(finite[..., None], tracks, 0.0))  # (T,N,2)
+
+    out = np.ascontiguousarray(frames.copy())
+    for t in range(num_frames):
+        canvas = out[t]
+        if trail > 0:
+            start = max(0, t - trail)
+            for n in range(num_tracks):
+                keep = visible[start : t + 1, n] & finite[start : t + 1, n]
+                if keep.sum() < 2:
+                    continue
+                color = tuple(float(c) for c in colors[t, n])
+                pts = fixed[start : t + 1, n][keep].reshape(-1, 1, 2).astype(np.int32)
+                cv2.polylines(canvas, [pts], False, color, 1, cv2.LINE_AA, _SUBPIXEL_BITS)
+        for n in range(num_tracks):
+            if not finite[t, n] or (not visible[t, n] and not show_occluded):
+                continue
+            center = (int(fixed[t, n, 0]), int(fixed[t, n, 1]))
+            color = tuple(float(c) for c in colors[t, n])
+            thickness = -1 if visible[t, n] else 1
+            cv2.circle(canvas, center, r_fixed, color, thickness, cv2.LINE_AA, _SUBPIXEL_BITS)
+    if legend and moving is not None:
+        out = np.stack([draw_legend(frame, TRACK_LEGEND) for frame in out])
+    return out
+
+
+def draw_legend(image: np.ndarray, entries: dict[str, Sequence[int]]) -> np.ndarray:
+    """Copy of an RGB image with a small colour key (name -> RGB) in the bottom-left corner."""
+    out = np.ascontiguousarray(image.copy())
+    scale = max(0.35, image.shape[0] / 500.0)
+    line = int(round(22 * scale)) + 4
+    for i, (name, color) in enumerate(entries.items()):
+        y = image.shape[0] - (len(entries) - i) * line - 2
+        cv2.rectangle(out, (4, y), (4 + line - 4, y + line - 4), tuple(int(c) for c in color), -1)
+        _put_text(out, name, (line + 4, y + line - 6), scale)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Layout
+# --------------------------------------------------------------------------------------------
+
+
+def _put_text(image: np.ndarray, text: str, origin: tuple[int, int], scale: float) -> None:
+    """White text on a black box, readable on any background (in place). `origin`: bottom-left."""
+    thickness = max(1, int(round(scale * 1.5)))
+    (width, height), baseline = cv2.getTextSize(text, _FONT, scale, thickness)
+    x, y = origin
+    cv2.rectangle(image, (x - 2, y - height - 2), (x + width + 1, y + baseline), (0, 0, 0), -1)
+    cv2.putText(image, text, origin, _FONT, scale, (255, 255, 255), thickness, cv2.LINE_AA)
+
+
+def label_image(image: np.ndarray, text: str) -> np.ndarray:
+    """Copy of an RGB image (H,W,3) with `text` written in its top-left corner."""
+    out = np.ascontiguousarray(image.copy())
+    scale = max(0.35, min(image.shape[0], image.shape[1]) / 500.0)
+    _put_text(out, text, (4, 4 + int(round(22 * scale))), scale)
+    return out
+
+
+def display_scale(height: int, min_height: int) -> int:
+    """Smallest integer factor that brings an image of `height` rows to at least `min_height`."""
+    return max(1, int(np.ceil(min_height / height)))
+
+
+def upscale(images: np.ndarray, factor: int) -> np.ndarray:
+    """Nearest-neighbour enlargement by an integer factor: (...,H,W,C) -> (...,H*f,W*f,C)."""
+    if factor == 1:
+        return images
+    return images.repeat(factor, axis=-3).repeat(factor, axis=-2)
+
+
+def _resize_to_height(image: np.ndarray, height: int) -> np.ndarray:
+    if image.shape[-3] == height:
+        return image
+    width = max(1, int(round(image.shape[-2] * height / image.shape[-3])))
+    if image.ndim == 3:
+        return cv2.resize(image, (width, height), interpolation=cv2.INTER_NEAREST)
+    return np.stack([cv2.resize(f, (width, height), interpolation=cv2.INTER_NEAREST) for f in image])
+
+
+def side_by_side(
+    panels: Sequence[np.ndarray], labels: Sequence[str] | None = None, gap: int = 2
+) -> np.ndarray:
+    """Place RGB panels left to right: all (H,W,3) images or all (T,H,W,3) videos of equal T.
+
+    Panels are scaled (nearest neighbour) to the first panel's height and separated by `gap`
+    white pixels; `labels` are written on them. Returns uint8 (H,W',3) or (T,H,W',3).
+    """
+    if not panels:
+        raise ValueError("side_by_side needs at least one panel")
+    height = panels[0].shape[-3]
+    scaled = [_resize_to_height(np.asarray(p, np.uint8), height) for p in panels]
+    if labels is not None:
+        scaled = [
+            np.stack([label_image(f, text) for f in p]) if p.ndim == 4 else label_image(p, text)
+            for p, text in zip(scaled, labels)
+        ]
+    spacer_shape = (*scaled[0].shape[:-2], gap, 3)
+    pieces = []
+    for i, panel in enumerate(scaled):
+        if i and gap:
+            pieces.append(np.full(spacer_shape, 255, np.uint8))
+        pieces.append(panel)
+    return np.concatenate(pieces, axis=-2)
+
+
+def contact_sheet(
+    images: Sequence[np.ndarray] | np.ndarray,
+    columns: int | None = None,
+    labels: Sequence[str] | None = None,
+    gap: int = 2,
+) -> np.ndarray:
+    """Grid of equally sized RGB images (N,H,W,3) -> one uint8 image, row by row, white gaps.
+
+    `columns` defaults to ceil(sqrt(N)); `labels` (N strings) are written on the tiles.
+    """
+    images = [np.asarray(i, np.uint8) for i in images]
+    if not images:
+        raise ValueError("contact_sheet needs at least one image")
+    if labels is not None:
+        images = [label_image(i, text) for i, text in zip(images, labels)]
+    count = len(images)
+    columns = columns or int(np.ceil(np.sqrt(count)))
+    rows = int(np.ceil(count / columns))
+    h, w = images[0].shape[:2]
+    sheet = np.full((rows * h + (rows - 1) * gap, columns * w + (columns - 1) * gap, 3), 255, np.uint8)
+    for i, image in enumerate(images):
+        r, c = divmod(i, columns)
+        sheet[r * (h + gap) : r * (h + gap) + h, c * (w + gap) : c * (w + gap) + w] = image
+    return sheet
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------------
+
+# extension -> OpenCV fourcc; .gif is written with Pillow instead
+_VIDEO_CODECS = {".mp4": "mp4v", ".webm": "VP80", ".avi": "MJPG"}
+
+
+def _temp_path(path: Path) -> Path:
+    """A sibling name with the same suffix, so writers still pick the format by extension."""
+    return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write an RGB uint8 (H,W,3) or grey (H,W) image; format from the extension (png, jpg)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    image = np.asarray(image, np.uint8)
+    bgr = image[..., ::-1] if image.ndim == 3 else image
+    tmp = _temp_path(path)
+    if not cv2.imwrite(str(tmp), np.ascontiguousarray(bgr)):
+        raise OSError(f"could not write image {path}")
+    os.replace(tmp, path)
+    return path
+
+
+@contextlib.contextmanager
+def _stderr_silenced():
+    """Mute the process's stderr (file descriptor 2, where C libraries print) inside the block."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) -> Path:
+    """Write RGB uint8 frames (T,H,W,3) as a video; the container follows the extension.
+
+    .mp4 (MPEG-4 part 2, plays in desktop players), .webm (VP8, plays in web browsers), .avi
+    (MJPEG) or .gif (Pillow, loops, shows inline on code-hosting sites). Written to a temporary
+    name and renamed, so an existing file is never left half-written. Odd sizes are padded to
+    even ones, which some codecs need.
+    """
+    path = Path(path)
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) == 0:
+        raise ValueError(f"frames must be uint8 (T,H,W,3) with T > 0, got {frames.dtype} {frames.shape}")
+    suffix = path.suffix.lower()
+    if suffix != ".gif" and suffix not in _VIDEO_CODECS:
+        raise ValueError(f"unknown video extension {suffix!r}: use .mp4, .webm, .avi or .gif")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temp_path(path)
+    if suffix == ".gif":
+        from PIL import Image
+
+        images = [Image.fromarray(f) for f in frames]
+        duration_ms = int(round(1000.0 / fps))
+        images[0].save(tmp, save_all=True, append_images=images[1:], duration=duration_ms, loop=0)
+    else:
+        pad_h, pad_w = frames.shape[1] % 2, frames.shape[2] % 2
+        if pad_h or pad_w:
+            frames = np.pad(frames, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+        height, width = frames.shape[1:3]
+        fourcc = cv2.VideoWriter_fourcc(*_VIDEO_CODECS[suffix])
+        with _stderr_silenced():  # FFmpeg prints a warning about the VP8 tag, then maps it itself
+            writer = cv2.VideoWriter(str(tmp), fourcc, float(fps), (width, height))
+        if not writer.isOpened():
+            raise OSError(f"OpenCV cannot encode {suffix} here; write .gif or .avi instead ({path})")
+        try:
+            for frame in frames:
+                writer.write(np.ascontiguousarray(frame[..., ::-1]))
+        finally:
+            writer.release()
+    os.replace(tmp, path)
+    return path
+
+
+def read_video_frames(path: str | os.PathLike) -> np.ndarray:
+    """Decode every frame of a video file with OpenCV: RGB uint8 (T,H,W,3)."""
+    capture = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        frames.append(frame[..., ::-1])
+    capture.release()
+    if not frames:
+        raise OSError(f"no frames could be decoded from {path}")
+    return np.ascontiguousarray(np.stack(frames))

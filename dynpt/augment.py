@@ -1,0 +1,114 @@
+"""Training augmentations for a clip, keeping point labels on the right pixels.
+
+A clip is a dict of numpy arrays: `rgb` uint8 (T,H,W,3), `tracks` float32 (T,N,2) as (x, y)
+pixels with pixel centres at integers, `occluded` bool (T,N), `moving` bool (T,N). Spatial
+augmentation is one affine map per clip (random scale, crop, horizontal/vertical flips) applied
+to the frames with `cv2.warpAffine` and to the tracks with the same matrix; points that leave
+the crop become occluded. Photometric augmentation (colour jitter, Gaussian blur) leaves labels
+unchanged; eraser boxes fill rectangles with their mean colour on frames after the first and mark
+the points they cover occluded. All randomness comes from the `numpy.random.Generator` given.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def spatial_matrix(in_hw: tuple[int, int], out_hw: tuple[int, int], cfg,
+                   rng: np.random.Generator) -> np.ndarray:
+    """A random 2x3 affine map from input to output pixels: scale, crop and flips.
+
+    The base scale makes the input cover the output; it is multiplied by U(scale_range).
+    """
+    (h, w), (oh, ow) = in_hw, out_hw
+    scale = max(oh / h, ow / w) * rng.uniform(*cfg.scale_range)
+    # Random crop offset of the scaled image (centred when it is smaller than the crop).
+    tx = -rng.uniform(0.0, max(w * scale - ow, 0.0)) if w * scale > ow else (ow - w * scale) / 2
+    ty = -rng.uniform(0.0, max(h * scale - oh, 0.0)) if h * scale > oh else (oh - h * scale) / 2
+    # Pixel centres sit at integers, so x -> s*x + t maps centre (0,0) to (t,t) + (s-1)/2 offset.
+    tx += (scale - 1.0) / 2.0
+    ty += (scale - 1.0) / 2.0
+    matrix = np.array([[scale, 0.0, tx], [0.0, scale, ty]])
+    if rng.random() < cfg.hflip_prob:  # x -> (ow - 1) - x
+        matrix = np.array([[-1.0, 0.0, ow - 1.0], [0.0, 1.0, 0.0]]) @ np.vstack([matrix, [0, 0, 1]])
+    if rng.random() < cfg.vflip_prob:  # y -> (oh - 1) - y
+        matrix = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, oh - 1.0]]) @ np.vstack([matrix, [0, 0, 1]])
+    return matrix
+
+
+def apply_spatial(clip: dict, matrix: np.ndarray, out_hw: tuple[int, int]) -> dict:
+    """Warp frames and tracks by the 2x3 `matrix`; points outside the output become occluded."""
+    oh, ow = out_hw
+    rgb = np.stack([
+        cv2.warpAffine(frame, matrix, (ow, oh), flags=cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        for frame in clip["rgb"]
+    ])  # (T,oh,ow,3)
+    tracks = clip["tracks"] @ matrix[:, :2].T + matrix[:, 2]  # (T,N,2)
+    inside = (tracks[..., 0] >= 0) & (tracks[..., 0] <= ow - 1) \
+        & (tracks[..., 1] >= 0) & (tracks[..., 1] <= oh - 1)  # (T,N)
+    return {**clip, "rgb": rgb, "tracks": tracks.astype(np.float32),
+            "occluded": clip["occluded"] | ~inside}
+
+
+def colour_jitter(rgb: np.ndarray, cfg, rng: np.random.Generator) -> np.ndarray:
+    """Brightness, contrast, saturation and hue jitter with one draw per clip; uint8 in and out."""
+    x = rgb.astype(np.float32)  # (T,H,W,3)
+    x *= rng.uniform(1 - cfg.brightness, 1 + cfg.brightness)
+    mean = x.mean()
+    x = (x - mean) * rng.uniform(1 - cfg.contrast, 1 + cfg.contrast) + mean
+    grey = x @ np.array([0.299, 0.587, 0.114], np.float32)  # (T,H,W)
+    x = (x - grey[..., None]) * rng.uniform(1 - cfg.saturation, 1 + cfg.saturation) + grey[..., None]
+    out = np.clip(x, 0, 255).astype(np.uint8)
+    shift = rng.uniform(-cfg.hue, cfg.hue) * 180.0  # OpenCV hue range is [0, 180)
+    if shift:
+        for t in range(len(out)):
+            hsv = cv2.cvtColor(out[t], cv2.COLOR_RGB2HSV)
+            hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(shift))) % 180).astype(np.uint8)
+            out[t] = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    return out
+
+
+def gaussian_blur(rgb: np.ndarray, sigma: float) -> np.ndarray:
+    """Blur every frame with a Gaussian of `sigma` pixels."""
+    return np.stack([cv2.GaussianBlur(frame, (0, 0), sigmaX=sigma) for frame in rgb])
+
+
+def erase_boxes(clip: dict, cfg, rng: np.random.Generator) -> dict:
+    """Fill 1..`eraser_max_boxes` random boxes per frame (not frame 0) with their mean colour.
+
+    Points inside a box on that frame are marked occluded.
+    """
+    rgb, tracks = clip["rgb"].copy(), clip["tracks"]
+    occluded = clip["occluded"].copy()
+    _, h, w, _ = rgb.shape
+    for t in range(1, len(rgb)):
+        for _ in range(rng.integers(1, cfg.eraser_max_boxes + 1)):
+            bw, bh = rng.integers(cfg.eraser_size_px[0], cfg.eraser_size_px[1] + 1, size=2)
+            x0, y0 = int(rng.integers(0, max(w - bw, 0) + 1)), int(rng.integers(0, max(h - bh, 0) + 1))
+            x1, y1 = min(x0 + bw, w), min(y0 + bh, h)
+            rgb[t, y0:y1, x0:x1] = rgb[t, y0:y1, x0:x1].reshape(-1, 3).mean(0).astype(np.uint8)
+            x, y = tracks[t, :, 0], tracks[t, :, 1]  # (N,)
+            occluded[t] |= (x >= x0 - 0.5) & (x < x1 - 0.5) & (y >= y0 - 0.5) & (y < y1 - 0.5)
+    return {**clip, "rgb": rgb, "occluded": occluded}
+
+
+def augment_clip(clip: dict, cfg, out_hw: tuple[int, int], rng: np.random.Generator) -> dict:
+    """All augmentations of the `augment:` config in order: spatial, jitter, blur, eraser."""
+    clip = apply_spatial(clip, spatial_matrix(clip["rgb"].shape[1:3], out_hw, cfg, rng), out_hw)
+    if rng.random() < cfg.jitter_prob:
+        clip = {**clip, "rgb": colour_jitter(clip["rgb"], cfg, rng)}
+    if rng.random() < cfg.blur_prob:
+        clip = {**clip, "rgb": gaussian_blur(clip["rgb"], rng.uniform(*cfg.blur_sigma))}
+    if rng.random() < cfg.eraser_prob:
+        clip = erase_boxes(clip, cfg, rng)
+    return clip
+
+
+def resize_clip(clip: dict, out_hw: tuple[int, int]) -> dict:
+    """Deterministic resize to `out_hw` (evaluation): the scale part of the spatial map only."""
+    h, w = clip["rgb"].shape[1:3]
+    sx, sy = out_hw[1] / w, out_hw[0] / h
+    matrix = np.array([[sx, 0.0, (sx - 1) / 2], [0.0, sy, (sy - 1) / 2]])
+    return apply_spatial(clip, matrix, out_hw)

@@ -1,0 +1,219 @@
+"""Training clips from datagen shards: a resumable, deterministic streaming pipeline.
+
+Per scene: choose a clip (T frames at a random stride), augment it (dynpt.augment), then sample
+N tracks that are visible at their query frame -- at their first visible frame, or (for a
+`random_query_fraction` of them) at a random visible frame. A sample is a dict of numpy arrays:
+`video` uint8 (T,H,W,3), `queries` float32 (N,3) as (t, x, y), `tracks` float32 (T,N,2),
+`visible` bool (T,N), `moving` bool (T,N), and `position` int64 (the stream state after it).
+
+`ShardStream` streams one or more shard sets mixed with weights. Every DDP rank and DataLoader
+worker reads its own slice ("split") of the shards (or of the samples, when there are fewer
+shards than splits). Per source and epoch, shards are permuted and samples pass a shuffle
+buffer, all seeded by (seed, source, epoch, split). Per sample, the source choice and the
+augmentation are seeded by (seed, split, sample counter). So the stream is a pure function of
+the seed and the position; `position` lets `--resume` continue exactly: the worker re-reads (but
+does not decode) the samples already taken from the current epoch of each source.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Iterator, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
+
+from c4d.errors import UserError
+from datagen.scene import Scene
+from datagen.shards import decode_scene, iter_samples, list_shards
+from dynpt.augment import augment_clip
+
+log = logging.getLogger(__name__)
+
+TRAIN_FIELDS = ("rgb", "tracks", "occluded", "moving", "query_frame")
+
+
+# --- one sample ---------------------------------------------------------------------------------
+
+
+def choose_clip(scene: Scene, num_frames: int, max_stride: int, rng: np.random.Generator) -> dict:
+    """A clip of `num_frames` frames at a random stride in [1, max_stride] and random start.
+
+    Returns `rgb` (T,H,W,3), `tracks` (T,N,2), `occluded` (T,N), `moving` (T,N) (time first).
+    """
+    total = scene.num_frames
+    if total < num_frames:
+        raise UserError(
+            f"scenes have {total} frames but data.num_frames={num_frames}; set "
+            f"data.num_frames<={total} or generate longer scenes"
+        )
+    if scene.moving is None:
+        raise UserError("scenes have no `moving` labels; generate them with a datagen preset that "
+                        "computes 3-D tracks (tracks_world)")
+    stride = int(rng.integers(1, max(1, min(max_stride, (total - 1) // max(num_frames - 1, 1))) + 1))
+    start = int(rng.integers(0, total - (num_frames - 1) * stride))
+    frames = np.arange(start, start + num_frames * stride, stride)[:num_frames]  # (T,)
+    return {
+        "rgb": scene.rgb[frames],
+        "tracks": scene.tracks[:, frames].transpose(1, 0, 2),  # (T,N,2)
+        "occluded": scene.occluded[:, frames].T,  # (T,N)
+        "moving": scene.moving[:, frames].T,  # (T,N)
+    }
+
+
+def sample_tracks(clip: dict, num_tracks: int, random_query_fraction: float,
+                  rng: np.random.Generator) -> dict | None:
+    """Pick `num_tracks` tracks visible somewhere in the clip and a visible query frame for each.
+
+    A fraction `random_query_fraction` of them is queried at a uniformly random visible frame,
+    the rest at their first visible frame. Tracks are drawn without replacement when there are
+    enough, else with replacement. Returns the model sample, or None if no track is visible.
+    """
+    visible = ~clip["occluded"]  # (T,N)
+    candidates = np.flatnonzero(visible.any(axis=0))
+    if candidates.size == 0:
+        return None
+    chosen = rng.choice(candidates, num_tracks, replace=candidates.size < num_tracks)  # (N',)
+    vis = visible[:, chosen]  # (T,N')
+    first = vis.argmax(axis=0)  # (N',)
+    random_pick = rng.random(num_tracks) < random_query_fraction
+    # A uniformly random visible frame: the k-th visible one, k uniform in [0, count).
+    kth = (rng.random(num_tracks) * vis.sum(axis=0)).astype(int)  # (N',)
+    random_frame = np.argmax(np.cumsum(vis, axis=0) > kth, axis=0)  # (N',)
+    query_t = np.where(random_pick, random_frame, first)  # (N',)
+    tracks = clip["tracks"][:, chosen]  # (T,N',2)
+    query_xy = tracks[query_t, np.arange(num_tracks)]  # (N',2)
+    return {
+        "video": np.ascontiguousarray(clip["rgb"]),
+        "queries": np.concatenate([query_t[:, None], query_xy], axis=1).astype(np.float32),
+        "tracks": np.ascontiguousarray(tracks, dtype=np.float32),
+        "visible": vis,
+        "moving": clip["moving"][:, chosen],
+    }
+
+
+def make_training_sample(scene: Scene, data_cfg, rng: np.random.Generator) -> dict | None:
+    """Clip, augment and sample tracks from one scene, as configured in `data:`."""
+    clip = choose_clip(scene, data_cfg.num_frames, data_cfg.max_stride, rng)
+    clip = augment_clip(clip, data_cfg.augment, tuple(data_cfg.crop_size), rng)
+    return sample_tracks(clip, data_cfg.num_tracks, data_cfg.random_query_fraction, rng)
+
+
+# --- the stream ---------------------------------------------------------------------------------
+
+
+def _rng(*key: int) -> np.random.Generator:
+    return np.random.default_rng([int(k) for k in key])
+
+
+class ShardStream(IterableDataset):
+    """An endless, seeded stream of training samples over weighted shard sets.
+
+    sources: shard sources (anything `datagen.shards.list_shards` accepts), mixed by `weights`.
+    rank, world_size: this DDP process. `start`: {split: position} from a checkpoint.
+    A position is [n, epoch_0, taken_0, epoch_1, taken_1, ...]: the split's sample counter and,
+    per source, its epoch and the samples already taken from that epoch.
+    """
+
+    def __init__(self, sources: Sequence, weights: Sequence[float], data_cfg, seed: int,
+                 rank: int = 0, world_size: int = 1, start: dict[int, list[int]] | None = None):
+        if len(sources) != len(weights) or not sources:
+            raise UserError(f"data.sources ({len(sources)}) and data.weights ({len(weights)}) "
+                            "must be non-empty lists of the same length")
+        if min(weights) < 0 or sum(weights) <= 0:
+            raise UserError(f"data.weights must be >= 0 with a positive sum, got {list(weights)}")
+        self.shards = [[str(p) for p in list_shards(s)] for s in sources]
+        self.probs = np.asarray(weights, float) / float(sum(weights))
+        self.cfg, self.seed = data_cfg, int(seed)
+        self.rank, self.world_size = rank, world_size
+        self.start = start or {}
+
+    def _raw(self, source: int, epoch: int, split: int, num_splits: int) -> Iterator[dict]:
+        """Raw (undecoded) samples of one epoch of one source for this split, shuffled."""
+        shards = self.shards[source]
+        order = _rng(self.seed, source, epoch).permutation(len(shards))
+        by_shard = len(shards) >= num_splits
+        mine = order[split::num_splits] if by_shard else order
+        buffer: list[dict] = []
+        rng = _rng(self.seed, source, epoch, split, 1)
+        index = 0
+        for shard_id in mine:
+            for sample in iter_samples(shards[shard_id]):
+                index += 1
+                if not by_shard and (index - 1) % num_splits != split:
+                    continue
+                buffer.append(sample)
+                if len(buffer) >= self.cfg.shuffle_buffer:
+                    yield buffer.pop(int(rng.integers(len(buffer))))
+        while buffer:
+            yield buffer.pop(int(rng.integers(len(buffer))))
+
+    def _source(self, source: int, epoch: int, taken: int, split: int, num_splits: int,
+                state: list[int]) -> Iterator[dict]:
+        """Endless raw samples of one source from (epoch, taken); keeps `state` up to date."""
+        while True:
+            count = 0
+            for count, sample in enumerate(self._raw(source, epoch, split, num_splits), 1):
+                if count <= taken:
+                    continue  # already consumed before the resume: read, not decoded
+                state[1 + 2 * source: 3 + 2 * source] = [epoch, count]
+                yield sample
+            if count == 0:
+                raise UserError(f"shard set {source} has no samples for split {split} of "
+                                f"{num_splits}; use fewer workers/GPUs or more scenes")
+            epoch, taken = epoch + 1, 0
+
+    def __iter__(self) -> Iterator[dict]:
+        info = get_worker_info()
+        worker, num_workers = (info.id, info.num_workers) if info else (0, 1)
+        num_splits = self.world_size * num_workers
+        split = self.rank * num_workers + worker
+        state = list(self.start.get(split, [0] + [0, 0] * len(self.shards)))
+        streams = [self._source(s, state[1 + 2 * s], state[2 + 2 * s], split, num_splits, state)
+                   for s in range(len(self.shards))]
+        while True:
+            n = state[0]
+            source = int(_rng(self.seed, split, n, 0).choice(len(self.probs), p=self.probs))
+            scene = decode_scene(next(streams[source]), TRAIN_FIELDS)
+            state[0] = n + 1
+            sample = make_training_sample(scene, self.cfg, _rng(self.seed, split, n, 1))
+            if sample is not None:
+                yield {**sample, "position": np.array([split, num_splits] + state, np.int64)}
+
+
+def make_loader(stream: ShardStream, batch_size: int, num_workers: int) -> DataLoader:
+    """A DataLoader over `stream`: batches come from workers in turn, so the order is fixed."""
+    return DataLoader(stream, batch_size=batch_size, num_workers=num_workers,
+                      persistent_workers=num_workers > 0, pin_memory=torch.cuda.is_available(),
+                      prefetch_factor=2 if num_workers > 0 else None)
+
+
+class StreamPosition:
+    """The resume state of one rank's loader: the last consumed position of every split."""
+
+    def __init__(self):
+        self.splits: dict[int, list[int]] = {}
+        self.num_splits: int | None = None
+
+    def update(self, positions: torch.Tensor) -> None:
+        """positions: (B, 2 + 1 + 2*S) int64 from a batch; rows are in stream order."""
+        for row in positions.tolist():
+            self.splits[row[0]] = row[2:]
+            self.num_splits = row[1]
+
+    def state_dict(self) -> dict:
+        return {"splits": dict(self.splits), "num_splits": self.num_splits}
+
+
+def merge_positions(states: Sequence[dict], num_splits: int) -> dict[int, list[int]]:
+    """The `start` of a ShardStream from the positions of all ranks; {} if the layout changed."""
+    merged: dict[int, list[int]] = {}
+    for state in states:
+        if state.get("num_splits") not in (None, num_splits):
+            log.warning("data position was saved with %s loader splits, now %d: the data stream "
+                        "restarts (training resumes, but not on the exact same samples)",
+                        state["num_splits"], num_splits)
+            return {}
+        merged.update({int(k): list(v) for k, v in state["splits"].items()})
+    return merged

@@ -1,0 +1,166 @@
+"""Reading official DUSt3R / MASt3R / MonST3R checkpoint files without executing their code.
+
+An official file (croco's `save_model`) is a pickled dict `{'model': state_dict, 'args':
+argparse.Namespace, ...}` whose `args.model` is the network's constructor call as a string, e.g.
+"AsymmetricCroCo3DStereo(pos_embed='RoPE100', img_size=(512, 512), head_type='dpt', ...,
+depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), enc_embed_dim=1024, ...)". The upstream
+code `eval`s that string; here it is parsed with `ast` into a name and a dict of literal keyword
+values, and anything that is not a literal (a call, an attribute, an expression) is refused.
+
+Security note: the `argparse.Namespace` in these files needs an unpickler beyond torch's tensor-only
+mode. `read_checkpoint` first tries `torch.load(weights_only=True)` with `argparse.Namespace` allowed;
+only if the file holds other Python objects (older training checkpoints) does it fall back to the
+full unpickler (`weights_only=False`, which can run code stored in the file). The project only ever
+loads files the user names on the command line, never downloads any.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import logging
+import math
+import pickle
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from c4d.errors import UserError
+
+log = logging.getLogger(__name__)
+
+# Bare names the constructor strings use for numbers (`inf` comes from `from numpy import inf`).
+_NAMED_CONSTANTS = {"inf": math.inf, "nan": math.nan, "True": True, "False": False, "None": None}
+
+
+@dataclass(frozen=True)
+class OfficialCheckpoint:
+    """The parts of an official checkpoint file this project uses.
+
+    `state_dict` maps parameter names (any leading `module.` removed) to tensors; `constructor` is
+    the class name of `args.model` (empty if the file has no args) and `kwargs` its keyword values.
+    """
+
+    path: Path
+    state_dict: dict[str, torch.Tensor]
+    constructor: str = ""
+    kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+def _literal(node: ast.AST, text: str) -> Any:
+    """The Python value of one literal node of a constructor string; refuses everything else."""
+    if isinstance(node, ast.Constant):
+        return node.value
+    if isinstance(node, ast.Name) and node.id in _NAMED_CONSTANTS:
+        return _NAMED_CONSTANTS[node.id]
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+        value = _literal(node.operand, text)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return -value if isinstance(node.op, ast.USub) else value
+    if isinstance(node, (ast.Tuple, ast.List)):
+        values = [_literal(item, text) for item in node.elts]
+        return tuple(values) if isinstance(node, ast.Tuple) else values
+    if isinstance(node, ast.Dict) and all(key is not None for key in node.keys):
+        return {_literal(k, text): _literal(v, text) for k, v in zip(node.keys, node.values)}
+    # float('inf') and friends, the only call allowed inside a value.
+    if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "float"
+            and len(node.args) == 1 and not node.keywords):
+        value = _literal(node.args[0], text)
+        if isinstance(value, (str, int, float)):
+            return float(value)
+    raise ValueError(f"not a literal value: {ast.get_source_segment(text, node) or ast.dump(node)}")
+
+
+def parse_constructor(text: str) -> tuple[str, dict[str, Any]]:
+    """Parse "Name(key=literal, ...)" into ("Name", {key: value}) without evaluating anything.
+
+    Values may be numbers, strings, booleans, None, `inf`/`-inf`, `float('inf')`, and tuples,
+    lists or dicts of those. Raises `ValueError` for any other construct or for positional args.
+    """
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError as exc:
+        raise ValueError(f"constructor string is not valid Python syntax: {exc.msg}") from exc
+    call = tree.body
+    if not (isinstance(call, ast.Call) and isinstance(call.func, ast.Name)):
+        raise ValueError("constructor string is not of the form Name(key=value, ...)")
+    if call.args:
+        raise ValueError("constructor string has positional arguments; only key=value is supported")
+    kwargs = {}
+    for keyword in call.keywords:
+        if keyword.arg is None:
+            raise ValueError("constructor string uses **kwargs, which is not supported")
+        kwargs[keyword.arg] = _literal(keyword.value, text)
+    return call.func.id, kwargs
+
+
+def _torch_load(path: Path, map_location: Any) -> Any:
+    """`torch.load` in tensor-only mode with argparse.Namespace allowed; full unpickling as fallback."""
+    try:
+        with torch.serialization.safe_globals([argparse.Namespace]):
+            return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError:
+        log.warning("%s holds Python objects beyond tensors and argparse.Namespace; loading it with "
+                    "the full unpickler because you named this file", path)
+        return torch.load(path, map_location=map_location, weights_only=False)
+
+
+def _constructor_string(args: Any) -> str:
+    """`args.model` of an official checkpoint (Namespace, dict or the string itself)."""
+    if isinstance(args, str):
+        return args
+    if isinstance(args, dict):
+        return str(args.get("model", ""))
+    return str(getattr(args, "model", "") or "")
+
+
+def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> OfficialCheckpoint:
+    """Read an official DUSt3R-family checkpoint (or a bare state dict) from a local file.
+
+    Raises `UserError` if the file is missing, unreadable, not a checkpoint, or its constructor
+    string cannot be parsed safely.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"checkpoint file {str(path)!r} does not exist; pass the path of a downloaded "
+                        "DUSt3R/MASt3R/MonST3R .pth file")
+    try:
+        ckpt = _torch_load(path, map_location)
+    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError, ValueError) as exc:
+        raise UserError(f"cannot read checkpoint {str(path)!r} ({type(exc).__name__}: "
+                        f"{str(exc).splitlines()[0] if str(exc) else 'truncated?'}); download it "
+                        "again or pass another file") from exc
+    if not isinstance(ckpt, dict):
+        raise UserError(f"{str(path)!r} is not a checkpoint (a dict with 'model' and 'args'); pass an "
+                        "official DUSt3R/MASt3R/MonST3R .pth file")
+    state = ckpt["model"] if "model" in ckpt and isinstance(ckpt["model"], dict) else ckpt
+    state = {k.removeprefix("module."): v for k, v in state.items() if isinstance(v, torch.Tensor)}
+    if not state:
+        raise UserError(f"{str(path)!r} contains no weights; pass an official DUSt3R/MASt3R/MonST3R "
+                        ".pth file")
+    text = _constructor_string(ckpt.get("args", "")) if "model" in ckpt else ""
+    name, kwargs = "", {}
+    if text:
+        try:
+            name, kwargs = parse_constructor(text)
+        except ValueError as exc:
+            raise UserError(f"cannot parse the network description args.model of {str(path)!r}: "
+                            f"{exc}; the file is not an official checkpoint") from exc
+    return OfficialCheckpoint(path=path, state_dict=state, constructor=name, kwargs=kwargs)
+
+
+def rope_frequency(kwargs: dict[str, Any], default: float = 100.0) -> float:
+    """RoPE base from `pos_embed='RoPE100'`; `default` if absent. Cosine embeddings are refused."""
+    pos_embed = str(kwargs.get("pos_embed", f"RoPE{default:g}"))
+    if not pos_embed.startswith("RoPE"):
+        raise UserError(f"checkpoint uses pos_embed={pos_embed!r}; only RoPE checkpoints "
+                        "(pos_embed='RoPE100', all released DUSt3R/MASt3R/MonST3R files) are supported")
+    return float(pos_embed[len("RoPE"):] or default)
+
+
+def block_count(state_dict: dict[str, torch.Tensor], prefix: str) -> int:
+    """Number of blocks `prefix{i}.` present in a state dict (max index + 1; 0 if none)."""
+    indices = {int(k[len(prefix):].split(".", 1)[0]) for k in state_dict if k.startswith(prefix)}
+    return max(indices) + 1 if indices else 0

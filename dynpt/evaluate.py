@@ -1,0 +1,155 @@
+"""Evaluating a DynPT tracker: D-ACC (mobility) and the TAP-Vid metrics.
+
+Sources: datagen shards (a directory, shard or glob), where every scene is resized to the eval
+resolution (256x256) and `eval.num_tracks` (256) tracks visible somewhere are drawn with a fixed
+seed, like the paper's D-ACC protocol; or TAP-Vid DAVIS / Kinetics pickles (dynpt.tapvid_data).
+Queries follow the benchmark's 'first' or 'strided' mode. TAP-Vid metrics are computed per video
+and averaged over videos. D-ACC pools every (query, frame) pair of the source, except the query
+frame itself, and is also reported separately on ground-truth moving and static pairs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from c4d.errors import UserError
+from datagen.shards import list_shards, read_scenes
+from datagen.visualize import contact_sheet, draw_tracks
+from dynpt.augment import resize_clip
+from dynpt.metrics import dynamic_accuracy, tapvid_metrics
+from dynpt.tapvid_data import read_tapvid, sample_queries
+
+log = logging.getLogger(__name__)
+
+EVAL_FIELDS = ("rgb", "tracks", "occluded", "moving", "meta")
+TABLE_KEYS = {  # summary key -> column title; values are shown in percent
+    "d_acc": "D-ACC", "d_acc_moving": "D-ACC moving", "d_acc_static": "D-ACC static",
+    "average_jaccard": "AJ", "average_pts_within_thresh": "<δ avg", "occlusion_accuracy": "OA",
+}
+
+
+def scene_item(scene, index: int, eval_cfg) -> dict:
+    """A datagen Scene -> an evaluation item at the eval resolution with `num_tracks` tracks."""
+    clip = {"rgb": scene.rgb, "tracks": scene.tracks.transpose(1, 0, 2),
+            "occluded": scene.occluded.T, "moving": None if scene.moving is None else scene.moving.T}
+    size = tuple(eval_cfg.resolution)
+    if scene.rgb.shape[1:3] != size:
+        clip = resize_clip(clip, size)
+    seen = np.flatnonzero((~clip["occluded"]).any(axis=0))
+    rng = np.random.default_rng([eval_cfg.seed, index])
+    chosen = np.sort(rng.choice(seen, min(eval_cfg.num_tracks, seen.size), replace=False))
+    return {"name": f"{scene.meta.get('preset', 'scene')}-{scene.meta.get('scene_index', index)}",
+            "video": clip["rgb"], "tracks": clip["tracks"][:, chosen],
+            "occluded": clip["occluded"][:, chosen],
+            "moving": None if clip["moving"] is None else clip["moving"][:, chosen]}
+
+
+def load_eval_scenes(source, eval_cfg) -> list[dict]:
+    """The first `eval_cfg.num_scenes` (0: all) scenes of a shard source as evaluation items."""
+    items = []
+    for index, scene in enumerate(read_scenes(source, fields=EVAL_FIELDS)):
+        if eval_cfg.num_scenes and index >= eval_cfg.num_scenes:
+            break
+        items.append(scene_item(scene, index, eval_cfg))
+    return items
+
+
+def load_source(source: str, eval_cfg) -> tuple[list[dict], str]:
+    """Evaluation items of a shard source or a TAP-Vid pickle source, and its kind."""
+    text = os.fspath(source)
+    if text.endswith(".pkl") or (Path(text).is_dir() and any(Path(text).glob("*.pkl"))):
+        return list(read_tapvid(text, tuple(eval_cfg.resolution))), "tapvid"
+    list_shards(text)  # a clear UserError if there are no shards
+    return load_eval_scenes(text, eval_cfg), "shards"
+
+
+def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
+    """Run `tracker.track` on every item; per-video TAP-Vid metrics, pooled D-ACC, an example.
+
+    Returns {'summary': {key: float}, 'per_video': [{name, metrics...}], 'example': {...}}.
+    """
+    per_video, correct = [], {"all": [0, 0], "moving": [0, 0], "static": [0, 0]}
+    example = None
+    for item in items:
+        query_points, index = sample_queries(item["occluded"], item["tracks"], query_mode)
+        if len(index) == 0:
+            log.warning("%s: no visible track to query; skipped", item["name"])
+            continue
+        queries_txy = query_points[:, [0, 2, 1]]  # (M,3) (t, x, y)
+        result = tracker.track(item["video"], queries_txy)
+        gt_tracks = item["tracks"][:, index].transpose(1, 0, 2)[None]  # (1,M,T,2)
+        gt_occ = item["occluded"][:, index].T[None]  # (1,M,T)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            metrics = tapvid_metrics(query_points[None], gt_occ, gt_tracks, ~result.visible.T[None],
+                                     result.tracks.transpose(1, 0, 2)[None], query_mode)
+        row = {"name": item["name"], "num_queries": int(len(index)),
+               **{k: float(v[0]) for k, v in metrics.items()}}
+        if item["moving"] is not None:
+            gt_moving = item["moving"][:, index]  # (T,M)
+            counted = np.arange(len(gt_moving))[:, None] != query_points[None, :, 0]  # (T,M)
+            counted &= np.isfinite(result.moving)
+            pred = result.moving > 0.5
+            for split, mask in (("all", counted), ("moving", counted & gt_moving),
+                                ("static", counted & ~gt_moving)):
+                correct[split][0] += int(((pred == gt_moving) & mask).sum())
+                correct[split][1] += int(mask.sum())
+            row["d_acc"] = dynamic_accuracy(pred, gt_moving, counted)
+        per_video.append(row)
+        if example is None:
+            example = {"video": item["video"], "tracks": result.tracks, "visible": result.visible,
+                       "moving": result.moving}
+    if not per_video:
+        raise UserError("no evaluable video: every video lacks visible tracks")
+    summary = {k: float(np.mean([r[k] for r in per_video]))
+               for k in per_video[0] if k not in ("name", "num_queries", "d_acc")}
+    if items and items[0]["moving"] is not None:
+        for split, key in (("all", "d_acc"), ("moving", "d_acc_moving"), ("static", "d_acc_static")):
+            right, total = correct[split]
+            summary[key] = right / total if total else float("nan")
+    summary["num_videos"] = len(per_video)
+    return {"summary": summary, "per_video": per_video, "example": example}
+
+
+def evaluate_model(model, items: list[dict], eval_cfg, device, query_mode: str = "first") -> dict:
+    """`evaluate_items` for an in-memory model (used by training's validation)."""
+    from dynpt.inference import Tracker
+
+    return evaluate_items(Tracker(model, device), items, query_mode)
+
+
+def track_image(example: dict, num_frames: int = 4) -> np.ndarray:
+    """Predicted tracks on `num_frames` frames, coloured by predicted mobility: uint8 (H,W,3)."""
+    T = len(example["video"])
+    frames = np.linspace(0, T - 1, num_frames).round().astype(int)
+    drawn = draw_tracks(example["video"], example["tracks"], example["visible"],
+                        np.nan_to_num(example["moving"]), trail=4, legend=True)
+    return contact_sheet(drawn[frames], columns=num_frames, labels=[f"t={t}" for t in frames])
+
+
+def markdown_table(summary: dict, title: str) -> str:
+    """One-row Markdown table of the summary (percent)."""
+    keys = [k for k in TABLE_KEYS if k in summary]
+    head = "| source | videos | " + " | ".join(TABLE_KEYS[k] for k in keys) + " |"
+    rule = "|---|---|" + "---|" * len(keys)
+    cells = " | ".join(f"{100 * summary[k]:.1f}" for k in keys)
+    return f"{head}\n{rule}\n| {title} | {summary['num_videos']} | {cells} |\n"
+
+
+def write_report(result: dict, out_dir: str | Path, title: str, info: dict) -> tuple[Path, Path]:
+    """`eval.json` (summary, per video, `info`) and `eval.md` in `out_dir`, both atomically."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    payload = {"info": info, "summary": result["summary"], "per_video": result["per_video"]}
+    paths = []
+    for name, text in (("eval.json", json.dumps(payload, indent=2) + "\n"),
+                       ("eval.md", markdown_table(result["summary"], title))):
+        tmp = out / f".{name}.tmp{os.getpid()}"
+        tmp.write_text(text)
+        os.replace(tmp, out / name)
+        paths.append(out / name)
+    return paths[0], paths[1]

@@ -1,0 +1,182 @@
+"""Tracking videos with a trained DynPT: input checks, query sampling, resizing, both directions.
+
+`Tracker.track` resizes the video to the model's `resolution` (if the config sets one), tracks
+forward from every query frame with the model's sliding windows, and, for queries after the first
+frame, backward by tracking the reversed video, so every frame gets a prediction.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from c4d.errors import UserError
+from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
+from dynpt.model import DynPT, DynPTOutput
+from dynpt.query_sampling import sample_queries
+
+
+@dataclass
+class TrackResult:
+    """Tracker output (numpy, T frames, N tracks): tracks float32 (T,N,2) (x, y) input pixels;
+    visible bool (T,N); confidence float32 (T,N) in [0,1]; moving float32 (T,N) probability that
+    the point moves in the world; queries float32 (N,3) as (t, x, y)."""
+
+    tracks: np.ndarray
+    visible: np.ndarray
+    confidence: np.ndarray
+    moving: np.ndarray
+    queries: np.ndarray
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write all arrays to an .npz file atomically."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.npz")
+        np.savez_compressed(tmp, tracks=self.tracks, visible=self.visible, confidence=self.confidence,
+                            moving=self.moving, queries=self.queries)
+        os.replace(tmp, path)
+        return path
+
+
+def _check_video(video) -> np.ndarray | torch.Tensor:
+    if isinstance(video, torch.Tensor):
+        shape, dtype_ok = tuple(video.shape), video.dtype == torch.uint8
+    else:
+        video = np.asarray(video)
+        shape, dtype_ok = video.shape, video.dtype == np.uint8
+    if len(shape) != 4 or shape[-1] != 3:
+        raise UserError(f"video must be RGB frames of shape (T,H,W,3), got shape {shape}; "
+                        "convert grey or RGBA frames to RGB first")
+    if not dtype_ok:
+        raise UserError(f"video must be uint8 (values 0..255), got {video.dtype}; convert it first")
+    if shape[0] < 2:
+        raise UserError(f"video has {shape[0]} frame(s); tracking needs at least 2")
+    if shape[1] < 1 or shape[2] < 1:
+        raise UserError(f"video frames are empty ({shape[1]}x{shape[2]} pixels)")
+    return video
+
+
+def _check_queries(queries, T: int, H: int, W: int) -> np.ndarray:
+    q = np.asarray(queries.detach().cpu() if isinstance(queries, torch.Tensor) else queries, np.float32)
+    if q.ndim != 2 or q.shape[1] != 3 or len(q) == 0:
+        raise UserError(f"queries must be a non-empty (N,3) array of (t, x, y), got shape {q.shape}")
+    if not np.isfinite(q).all():
+        raise UserError("queries contain NaN or infinite values")
+    t, x, y = q.T
+    bad_t = (t < 0) | (t > T - 1) | (np.abs(t - np.round(t)) > 1e-3)
+    if bad_t.any():
+        raise UserError(f"query {int(np.argmax(bad_t))} has frame index {t[bad_t][0]:g}, but the video "
+                        f"has frames 0..{T - 1}; give integer frame indices in that range")
+    outside = (x < -0.5) | (x > W - 0.5) | (y < -0.5) | (y > H - 0.5)
+    if outside.any():
+        i = int(np.argmax(outside))
+        raise UserError(f"query {i} at (x={x[i]:g}, y={y[i]:g}) lies outside the {W}x{H} frame; "
+                        "give pixel coordinates with 0 <= x < W and 0 <= y < H")
+    q[:, 0] = np.round(t)
+    return q
+
+
+class Tracker:
+    """A DynPT model in eval mode on a device, tracking whole videos."""
+
+    def __init__(self, model: DynPT, device: str | torch.device | None = None):
+        device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.model = model.eval().to(device)
+        self.device = device
+
+    def _autocast(self):
+        if self.device.type == "cuda":
+            dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+            return torch.autocast("cuda", dtype=dtype)
+        return contextlib.nullcontext()
+
+    def _video_tensor(self, video, size: tuple[int, int]) -> torch.Tensor:
+        """uint8 (T,H,W,3) -> uint8 (1,T,3,h,w) on the device, resized a few frames at a time."""
+        video = torch.as_tensor(video)
+        out = []
+        for chunk in video.split(32):
+            x = chunk.to(self.device).permute(0, 3, 1, 2)  # (t,3,H,W)
+            if tuple(x.shape[-2:]) != size:
+                x = F.interpolate(x.float(), size=size, mode="bilinear", align_corners=False,
+                                  antialias=True).round().clamp(0, 255).to(torch.uint8)
+            out.append(x)
+        return torch.cat(out)[None]
+
+    def _run(self, video: torch.Tensor, queries: np.ndarray) -> DynPTOutput:
+        q = torch.from_numpy(queries).to(self.device)[None]  # (1,N,3)
+        with self._autocast():
+            return self.model(video, q, iters=self.model.config["eval_iters"])
+
+    @torch.inference_mode()
+    def track(self, video, queries=None, grid_size: int = 20, seed: int = 0, backward: bool = True) -> TrackResult:
+        """Track points through `video`, uint8 (T,H,W,3) numpy or torch.
+
+        queries: float (N,3) as (t, x, y) in input pixels, or None for the paper's sampling on the
+        first frame (per `grid_size` cell: max-gradient point + one random point, `seed`ed).
+        backward: also track queries after frame 0 backward in time (else frames before a query
+        frame keep the query position, visible False, confidence 0, moving NaN).
+        """
+        video = _check_video(video)
+        T, H, W = video.shape[:3]
+        if queries is None:
+            first = video[0].cpu().numpy() if isinstance(video, torch.Tensor) else video[0]
+            queries = sample_queries(first, grid_size, seed)
+        queries = _check_queries(queries, T, H, W)
+        cfg = self.model.config
+        h, w = cfg["resolution"] or (H, W)
+        sx, sy = w / W, h / H
+        scaled = queries.copy()
+        scaled[:, 1] = (queries[:, 1] + 0.5) * sx - 0.5
+        scaled[:, 2] = (queries[:, 2] + 0.5) * sy - 0.5
+        frames = self._video_tensor(video, (h, w))  # (1,T,3,h,w) uint8
+
+        out = self._run(frames, scaled)
+        coords = out.coords[-1][0].float()  # (T,N,2)
+        logits = torch.stack([out.vis_logits[-1], out.conf_logits[-1], out.moving_logits[-1]], -1)[0].float()
+        done = out.valid[0].clone()  # (T,N)
+        later = np.nonzero(queries[:, 0] > 0)[0]
+        if backward and len(later):
+            rev = scaled[later].copy()
+            rev[:, 0] = T - 1 - rev[:, 0]
+            back = self._run(frames.flip(1), rev)
+            b_coords = back.coords[-1][0].float().flip(0)  # (T,n,2) back in forward time
+            b_logits = torch.stack([back.vis_logits[-1], back.conf_logits[-1], back.moving_logits[-1]],
+                                   -1)[0].float().flip(0)
+            idx = torch.from_numpy(later).to(self.device)
+            fill = ~done[:, idx]  # (T,n) frames before the query frame
+            coords[:, idx] = torch.where(fill[..., None], b_coords, coords[:, idx])
+            logits[:, idx] = torch.where(fill[..., None], b_logits, logits[:, idx])
+            done[:, idx] = True
+
+        coords[..., 0] = (coords[..., 0] + 0.5) / sx - 0.5
+        coords[..., 1] = (coords[..., 1] + 0.5) / sy - 0.5
+        prob = torch.sigmoid(logits)  # (T,N,3)
+        visible = prob[..., 0] * prob[..., 1] > cfg["visibility_threshold"]
+        confidence, moving = prob[..., 1], prob[..., 2]
+        # the query frame is known exactly; frames not predicted get neutral values
+        tq = torch.from_numpy(queries[:, 0]).long().to(self.device)
+        n = torch.arange(len(queries), device=self.device)
+        xy_q = torch.from_numpy(queries[:, 1:]).to(self.device)
+        coords = torch.where(done[..., None], coords, xy_q[None])
+        coords[tq, n] = xy_q
+        visible = visible & done
+        visible[tq, n] = True
+        confidence = torch.where(done, confidence, torch.zeros_like(confidence))
+        moving = torch.where(done, moving, torch.full_like(moving, float("nan")))
+        np_ = lambda x: x.cpu().numpy()
+        return TrackResult(tracks=np_(coords).astype(np.float32), visible=np_(visible),
+                           confidence=np_(confidence).astype(np.float32),
+                           moving=np_(moving).astype(np.float32), queries=queries)
+
+
+def load_tracker(path: str | os.PathLike, device: str | torch.device | None = None) -> Tracker:
+    """A `Tracker` (eval mode) from a DynPT checkpoint file; no config file needed."""
+    ckpt = load_checkpoint(path)
+    return Tracker(model_from_checkpoint(ckpt, path), device)

@@ -1,0 +1,107 @@
+"""TAP-Vid DAVIS / Kinetics pickles and the benchmark's query sampling.
+
+Files (downloaded by the user, see docs/TRAINING.md): `tapvid_davis.pkl`, a dict name ->
+{'video': uint8 (T,H,W,3), 'points': float (N,T,2) normalised (x, y) in [0,1], 'occluded': bool
+(N,T)}; Kinetics `NNNN_of_0010.pkl`, a list of such dicts with 'video' as an array of JPEG bytes.
+Videos are resized to 256x256; points become pixels of that raster (x * 256, no offset), then
+pixel-centre coordinates (- 0.5) as everywhere in this project. The TAP-Vid metrics only use
+differences of coordinates, so the shift does not change any score.
+
+An evaluation item is a dict: `name`, `video` uint8 (T,H,W,3), `tracks` float32 (T,N,2),
+`occluded` bool (T,N), `moving` bool (T,N) or None.
+"""
+
+from __future__ import annotations
+
+import glob
+import pickle
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from c4d.errors import UserError
+
+QUERY_STRIDE = 5  # the benchmark's 'strided' mode queries every 5th frame
+
+
+def _decode_frames(video) -> np.ndarray:
+    """uint8 (T,H,W,3) RGB from an array of frames or of JPEG/PNG bytes."""
+    if isinstance(video, np.ndarray) and video.dtype == np.uint8 and video.ndim == 4:
+        return video
+    frames = [cv2.imdecode(np.frombuffer(f, np.uint8), cv2.IMREAD_COLOR) for f in video]
+    if any(f is None for f in frames):
+        raise UserError("a TAP-Vid video holds undecodable frame bytes; re-download the pickle")
+    return np.stack([f[..., ::-1] for f in frames])
+
+
+def tapvid_item(name: str, entry: dict, size: tuple[int, int] = (256, 256)) -> dict:
+    """One pickle entry -> an evaluation item at `size` (H, W)."""
+    missing = {"video", "points", "occluded"} - set(entry)
+    if missing:
+        raise UserError(f"TAP-Vid entry {name!r} lacks {sorted(missing)}: not a TAP-Vid pickle")
+    frames = _decode_frames(entry["video"])
+    h, w = size
+    if frames.shape[1:3] != (h, w):
+        frames = np.stack([cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA) for f in frames])
+    points = np.asarray(entry["points"], np.float64)  # (N,T,2) in [0,1]
+    tracks = points * np.array([w, h]) - 0.5  # pixel centres at integers
+    return {"name": name, "video": frames, "tracks": tracks.transpose(1, 0, 2).astype(np.float32),
+            "occluded": np.asarray(entry["occluded"], bool).T, "moving": None}
+
+
+def read_tapvid(source: str | Path, size: tuple[int, int] = (256, 256)) -> Iterator[dict]:
+    """Evaluation items of a TAP-Vid pickle, a directory/glob of Kinetics shard pickles."""
+    path = Path(source)
+    files = (sorted(path.glob("*.pkl")) if path.is_dir()
+             else sorted(Path(p) for p in glob.glob(str(source))))
+    if not files:
+        raise UserError(f"no TAP-Vid pickle at {str(source)!r}; give tapvid_davis.pkl or the "
+                        "folder of Kinetics NNNN_of_0010.pkl files")
+    for file in files:
+        try:
+            with open(file, "rb") as f:
+                data = pickle.load(f)
+        except (pickle.UnpicklingError, EOFError, OSError) as exc:
+            raise UserError(f"cannot read {file} as a pickle ({exc}); re-download it") from exc
+        entries = data.items() if isinstance(data, dict) else (
+            (f"{file.stem}/{i:04d}", e) for i, e in enumerate(data))
+        for name, entry in entries:
+            yield tapvid_item(str(name), entry, size)
+
+
+def queries_first(occluded: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Query each track at its first visible frame; never-visible tracks are dropped.
+
+    occluded (T,N), tracks (T,N,2) -> query_points (M,3) as (t, y, x) and track index (M,).
+    """
+    visible = ~occluded  # (T,N)
+    index = np.flatnonzero(visible.any(axis=0))  # (M,)
+    t = visible[:, index].argmax(axis=0)  # (M,)
+    xy = tracks[t, index]  # (M,2)
+    return np.stack([t, xy[:, 1], xy[:, 0]], axis=1).astype(np.float32), index
+
+
+def queries_strided(occluded: np.ndarray, tracks: np.ndarray,
+                    stride: int = QUERY_STRIDE) -> tuple[np.ndarray, np.ndarray]:
+    """Every track visible at frame 0, stride, 2*stride, ... becomes a query there.
+
+    Ordered by query frame, then track. Returns query_points (M,3) (t, y, x), track index (M,).
+    """
+    points, index = [], []
+    for t in range(0, occluded.shape[0], stride):
+        visible = np.flatnonzero(~occluded[t])
+        xy = tracks[t, visible]  # (m,2)
+        points.append(np.stack([np.full(len(visible), t), xy[:, 1], xy[:, 0]], axis=1))
+        index.append(visible)
+    return np.concatenate(points).astype(np.float32), np.concatenate(index)
+
+
+def sample_queries(occluded: np.ndarray, tracks: np.ndarray, mode: str):
+    """`queries_first` or `queries_strided` by the benchmark's mode name."""
+    if mode == "first":
+        return queries_first(occluded, tracks)
+    if mode == "strided":
+        return queries_strided(occluded, tracks)
+    raise UserError(f"unknown query mode {mode!r}; use --mode first or --mode strided")

@@ -1,0 +1,336 @@
+"""Training DynPT on datagen shards: AdamW + OneCycle, gradient accumulation, bf16, DDP, resume.
+
+One optimiser step uses `train.total_batch` clips: `train.batch_size` per process and forward
+pass, accumulated over `total_batch / (batch_size * world_size)` micro-batches. Run on one
+process (`c4d train ...`) or many (`torchrun ... -m dynpt.cli_train ...`, see docs/TRAINING.md).
+
+Files in `train.out_dir`: `config.yaml`, `checkpoints/step_XXXXXXXX.pt` (the last
+`keep_last`), `checkpoints/best.pt` (best validation `eval.best_metric`), `log.jsonl` (one line
+per step: losses, learning rate), `tb/` (TensorBoard). A checkpoint holds the model, optimiser,
+scheduler, step, RNG states and the data-stream position, so `--resume` continues the same run.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import random
+import time
+from contextlib import nullcontext
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from omegaconf import OmegaConf
+from torch.nn.parallel import DistributedDataParallel
+
+from c4d.config import to_dict
+from c4d.errors import UserError
+from dynpt.checkpoint import load_checkpoint, save_checkpoint
+from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
+from dynpt.evaluate import evaluate_model, load_eval_scenes, track_image
+from dynpt.losses import LossWeights, dynpt_loss
+from dynpt.model import build_model
+
+log = logging.getLogger(__name__)
+
+
+# --- process set-up -----------------------------------------------------------------------------
+
+
+def init_distributed() -> tuple[int, int, torch.device]:
+    """(rank, world_size, device) from torchrun's environment; a single process without it."""
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    cuda = torch.cuda.is_available()
+    device = torch.device(f"cuda:{local_rank}" if cuda else "cpu")
+    if cuda:
+        torch.cuda.set_device(device)
+    if world_size > 1 and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if cuda else "gloo")
+    return (dist.get_rank() if world_size > 1 else 0), world_size, device
+
+
+def accumulation_steps(total_batch: int, batch_size: int, world_size: int) -> int:
+    """Micro-batches per optimiser step so that batch_size * world_size * steps == total_batch."""
+    per_pass = batch_size * world_size
+    if total_batch % per_pass:
+        raise UserError(
+            f"train.total_batch={total_batch} is not a multiple of train.batch_size={batch_size} "
+            f"x {world_size} processes; choose total_batch as a multiple of {per_pass}"
+        )
+    return total_batch // per_pass
+
+
+def rng_state() -> dict:
+    """Python, numpy, torch (and CUDA) RNG states in types `torch.load(weights_only=True)` reads."""
+    kind, key, pos, has_gauss, gauss = np.random.get_state()
+    state = {"python": random.getstate(), "torch": torch.get_rng_state(),
+             "numpy": [kind, torch.from_numpy(key.astype(np.int64)), pos, has_gauss, gauss]}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    random.setstate(state["python"])
+    kind, key, pos, has_gauss, gauss = state["numpy"]
+    np.random.set_state((kind, key.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+# --- checkpoints --------------------------------------------------------------------------------
+
+
+def checkpoint_dir(out_dir: str | Path) -> Path:
+    return Path(out_dir) / "checkpoints"
+
+
+def latest_checkpoint(out_dir: str | Path) -> Path | None:
+    """The step checkpoint with the highest step in `out_dir`, or None."""
+    found = sorted(checkpoint_dir(out_dir).glob("step_*.pt"))
+    return found[-1] if found else None
+
+
+def prune_checkpoints(out_dir: str | Path, keep_last: int) -> None:
+    """Delete all but the newest `keep_last` step checkpoints (best.pt is never touched)."""
+    for old in sorted(checkpoint_dir(out_dir).glob("step_*.pt"))[:-keep_last]:
+        old.unlink(missing_ok=True)
+
+
+# --- the loop -----------------------------------------------------------------------------------
+
+
+class Trainer:
+    """Holds the model, optimiser, data and logs of one training run (`cfg`: the whole config)."""
+
+    def __init__(self, cfg, resume: bool = False):
+        self.cfg = cfg
+        tc = cfg.train
+        self.rank, self.world_size, self.device = init_distributed()
+        self.main = self.rank == 0
+        self.out_dir = Path(tc.out_dir)
+        self.accum = accumulation_steps(tc.total_batch, tc.batch_size, self.world_size)
+        if tc.steps < 3:
+            raise UserError(f"train.steps={tc.steps}: the OneCycle schedule needs at least 3 steps")
+        random.seed(cfg.seed + self.rank)
+        np.random.seed(cfg.seed + self.rank)
+        torch.manual_seed(cfg.seed + self.rank)
+
+        self.model = build_model(cfg.model).to(self.device)
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay,
+                                           eps=tc.adam_eps)
+        self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
+            # warm-up of at least 2 steps: OneCycleLR divides by zero on a shorter phase
+            self.optimizer, max_lr=tc.lr, total_steps=tc.steps,
+            pct_start=max(tc.pct_start, 2.0 / tc.steps),
+            anneal_strategy="cos", cycle_momentum=False, div_factor=tc.div_factor,
+            final_div_factor=tc.final_div_factor)
+        self.loss_weights = LossWeights.from_config(cfg.loss)
+        self.step, self.best = 0, None
+        start_positions: dict = {}
+        if resume:
+            start_positions = self._resume()
+        elif latest_checkpoint(self.out_dir) is not None:
+            raise UserError(f"{self.out_dir} already holds checkpoints; add --resume to continue "
+                            "that run, or set train.out_dir=... to a new folder")
+        self.ddp = (DistributedDataParallel(self.model, device_ids=[self.device.index]
+                                            if self.device.type == "cuda" else None)
+                    if self.world_size > 1 else self.model)
+        sources = list(cfg.data.sources)
+        weights = list(cfg.data.weights) or [1.0] * len(sources)
+        stream = ShardStream(sources, weights, cfg.data, cfg.seed,
+                             self.rank, self.world_size, start_positions)
+        self.loader = make_loader(stream, tc.batch_size, cfg.data.num_workers)
+        self.position = StreamPosition()
+        self.val_scenes = (load_eval_scenes(cfg.eval.source, cfg.eval)
+                           if self.main and cfg.eval.source else [])
+        self.writer = None
+        if self.main:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            (self.out_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+            self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=self.step + 1)
+
+    # -- resume --
+
+    def _resume(self) -> dict:
+        path = latest_checkpoint(self.out_dir)
+        if path is None:
+            raise UserError(f"--resume: no checkpoint in {checkpoint_dir(self.out_dir)}; start "
+                            "without --resume, or set train.out_dir to the run to continue")
+        ckpt = load_checkpoint(path, self.cfg.model)
+        extra = ckpt["extra"]
+        self.model.load_state_dict(ckpt["model"])
+        self.optimizer.load_state_dict(extra["optimizer"])
+        self.scheduler.load_state_dict(extra["scheduler"])
+        self.step, self.best = int(ckpt["step"]), extra.get("best")
+        set_rng_state(extra["rng"][min(self.rank, len(extra["rng"]) - 1)])
+        log.info("resumed %s at step %d", path, self.step)
+        if self.main:
+            self._truncate_log(self.step)
+        num_splits = self.world_size * max(self.cfg.data.num_workers, 1)
+        return merge_positions(extra["data"], num_splits)
+
+    def _truncate_log(self, step: int) -> None:
+        """Drop log lines after `step` (written after the checkpoint, before a crash)."""
+        log_path = self.out_dir / "log.jsonl"
+        if log_path.exists():
+            lines = [l for l in log_path.read_text().splitlines() if json.loads(l)["step"] <= step]
+            log_path.write_text("".join(l + "\n" for l in lines))
+
+    # -- checkpoints --
+
+    def _gather(self, value):
+        if self.world_size == 1:
+            return [value]
+        out = [None] * self.world_size
+        dist.all_gather_object(out, value)
+        return out
+
+    def save(self, metrics: dict | None = None) -> None:
+        """Write step_XXXXXXXX.pt (all ranks' RNG and data positions), prune, update best.pt."""
+        rngs, positions = self._gather(rng_state()), self._gather(self.position.state_dict())
+        if not self.main:
+            return
+        extra = {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+                 "rng": rngs, "data": positions, "best": self.best, "metrics": metrics or {},
+                 "train_config": to_dict(self.cfg)}
+        path = checkpoint_dir(self.out_dir) / f"step_{self.step:08d}.pt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(path, self.model, self.step, extra=extra)
+        prune_checkpoints(self.out_dir, self.cfg.train.keep_last)
+
+    # -- one step --
+
+    def _autocast(self):
+        if self.device.type == "cuda" and self.cfg.train.bf16:
+            return torch.autocast("cuda", dtype=torch.bfloat16)
+        return nullcontext()
+
+    def train_step(self, batches) -> dict[str, float]:
+        """One optimiser step over `accum` micro-batches; returns the mean weighted loss terms."""
+        self.ddp.train()
+        totals: dict[str, float] = {}
+        for i in range(self.accum):
+            batch = next(batches)
+            self.position.update(batch["position"])
+            video = batch["video"].to(self.device, non_blocking=True).permute(0, 1, 4, 2, 3).float()
+            queries = batch["queries"].to(self.device)  # (B,N,3)
+            target = {
+                "tracks": batch["tracks"].to(self.device),  # (B,T,N,2)
+                "visible": batch["visible"].to(self.device),  # (B,T,N)
+                "moving": batch["moving"].to(self.device),  # (B,T,N)
+            }
+            sync = self.world_size == 1 or i == self.accum - 1
+            with (nullcontext() if sync else self.ddp.no_sync()), self._autocast():
+                output = self.ddp(video, queries)
+                loss, terms = dynpt_loss(output, target, self.loss_weights)
+            (loss / self.accum).backward()
+            for key, value in {"total": loss, **terms}.items():
+                totals[key] = totals.get(key, 0.0) + float(value.detach()) / self.accum
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.train.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.step += 1
+        totals["grad_norm"] = float(grad_norm)
+        return totals
+
+    # -- validation --
+
+    def validate(self) -> dict:
+        if not self.val_scenes:
+            return {}
+        result = evaluate_model(self.model, self.val_scenes, self.cfg.eval, self.device,
+                                query_mode=self.cfg.eval.query_mode)
+        summary = result["summary"]
+        for key, value in summary.items():
+            if isinstance(value, float) and math.isfinite(value):
+                self.writer.add_scalar(f"val/{key}", value, self.step)
+        self.writer.add_image("val/tracks", track_image(result["example"]), self.step,
+                              dataformats="HWC")
+        return summary
+
+    def _is_best(self, summary: dict) -> bool:
+        value = summary.get(self.cfg.eval.best_metric)
+        if value is None or not math.isfinite(value):
+            return False
+        if self.best is None or value > self.best:
+            self.best = value
+            return True
+        return False
+
+    # -- run --
+
+    def fit(self) -> dict:
+        """Train to `train.steps` (or `train.stop_after` more steps); returns the last summary."""
+        tc = self.cfg.train
+        stop = tc.steps if tc.stop_after <= 0 else min(tc.steps, self.step + tc.stop_after)
+        batches = iter(self.loader)
+        log_path = self.out_dir / "log.jsonl"
+        summary: dict = {}
+        window_start, window_clips = time.perf_counter(), 0
+        if self.device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(self.device)
+        while self.step < stop:
+            terms = self.train_step(batches)
+            window_clips += tc.total_batch
+            lr = self.scheduler.get_last_lr()[0]
+            if self.main:
+                with open(log_path, "a") as f:
+                    f.write(json.dumps({"step": self.step, "lr": lr, **terms}) + "\n")
+            if self.main and (self.step % tc.log_every == 0 or self.step == stop):
+                elapsed = time.perf_counter() - window_start
+                for key, value in terms.items():
+                    self.writer.add_scalar(f"loss/{key}" if key != "grad_norm" else "train/grad_norm",
+                                           value, self.step)
+                self.writer.add_scalar("train/lr", lr, self.step)
+                self.writer.add_scalar("train/clips_per_s", window_clips / elapsed, self.step)
+                if self.device.type == "cuda":
+                    self.writer.add_scalar("train/gpu_mem_gib",
+                                           torch.cuda.max_memory_allocated(self.device) / 2**30,
+                                           self.step)
+                log.info("step %d/%d  loss %.4f  lr %.2e  %.2f clips/s", self.step, tc.steps,
+                         terms["total"], lr, window_clips / elapsed)
+                window_start, window_clips = time.perf_counter(), 0
+            is_last = self.step == stop
+            if self.main and self.cfg.eval.every > 0 and (
+                    self.step % self.cfg.eval.every == 0 or self.step == tc.steps):
+                summary = self.validate()
+                if summary:
+                    log.info("step %d validation: %s", self.step, json.dumps(
+                        {k: round(v, 4) for k, v in summary.items() if isinstance(v, float)}))
+                if self._is_best(summary):
+                    save_checkpoint(checkpoint_dir(self.out_dir) / "best.pt", self.model, self.step,
+                                    extra={"metrics": summary, "train_config": to_dict(self.cfg)})
+            if self.step % tc.ckpt_every == 0 or is_last:
+                self.save(summary)
+        if self.writer is not None:
+            self.writer.flush()
+        return summary
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        if self.world_size > 1 and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def train(cfg, resume: bool = False) -> dict:
+    """Run (or resume) the training described by `cfg`; returns the last validation summary."""
+    if not cfg.data.sources:
+        raise UserError("no training data: set data.sources=[DIR_OR_GLOB,...] (and data.weights) "
+                        "to shard sets made with `c4d datagen`")
+    trainer = Trainer(cfg, resume=resume)
+    try:
+        return trainer.fit()
+    finally:
+        trainer.close()

@@ -1,0 +1,149 @@
+"""Motion masks: Sampson distance by hand, C4D's correspondence-guided mask separating a moving box,
+the fallbacks, the flow-only (ego-flow) baseline and the ground-truth masks."""
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from c4d.errors import UserError
+from c4d_pipeline.eval_metrics import mask_iou
+from c4d_pipeline.flow import build_flow
+from c4d_pipeline.motion_mask import (
+    MotionMaskConfig,
+    correspondence_motion_masks,
+    ego_flow,
+    flow_only_motion_masks,
+    ground_truth_motion_masks,
+    oracle_tracks,
+    pair_motion_mask,
+    pairwise_ego_flow,
+    sampson_distance,
+)
+from c4d_pipeline.pointmaps import GroundTruthPointmaps
+from c4d_pipeline.scene_graph import strided_window_pairs
+from c4d_pipeline.synthetic import make_box_scene
+
+MOVING_BOX = 3  # make_box_scene's sliding box is its third object
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_box_scene(num_frames=6, height=48, width=64, num_tracks=300, seed=2)
+
+
+@pytest.fixture(scope="module")
+def graph(scene):
+    pairs = [tuple(p) for p in strided_window_pairs(scene.num_frames, window=2, stride=2)]
+    return pairs, build_flow("gt", scene=scene).flow(scene.rgb, pairs)
+
+
+def test_sampson_distance_of_a_sideways_translation():
+    # camera translating along x with K = I: F = [e]x with e = (1, 0, 0); epipolar lines are rows
+    fundamental = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    x1 = np.array([[10.0, 5.0], [3.0, 7.0], [0.0, 0.0]])
+    x2 = np.array([[14.0, 5.0], [3.0, 9.0], [-5.0, -3.0]])  # along the row, 2 px off, 3 px off
+    np.testing.assert_allclose(sampson_distance(fundamental, x1, x2), [0.0, 2 / np.sqrt(2), 3 / np.sqrt(2)])
+    np.testing.assert_allclose(sampson_distance(7.0 * fundamental, x1, x2), sampson_distance(fundamental, x1, x2))
+
+
+def test_ground_truth_masks_are_the_sliding_box(scene):
+    masks = ground_truth_motion_masks(scene)
+    np.testing.assert_array_equal(masks, scene.segmentation == MOVING_BOX)
+
+
+def test_correspondence_mask_separates_the_moving_box(scene, graph):
+    pairs, flows = graph
+    result = correspondence_motion_masks(oracle_tracks(scene), flows, pairs)
+    assert {info["method"] for info in result.pair_info} == {"static"}
+    truth = ground_truth_motion_masks(scene)
+    assert mask_iou(result.masks, truth)["iou"] > 0.95
+    static_boxes = (scene.segmentation == 1) | (scene.segmentation == 2)
+    assert result.masks[static_boxes].mean() < 0.01
+
+
+def test_correspondence_mask_survives_flow_noise(scene, graph):
+    pairs, flows = graph
+    noisy = flows + np.random.default_rng(0).normal(0, 0.15, flows.shape).astype(np.float32)
+    result = correspondence_motion_masks(oracle_tracks(scene), noisy, pairs, MotionMaskConfig(sampson_threshold_px=0.6))
+    assert mask_iou(result.masks, ground_truth_motion_masks(scene))["iou"] > 0.6
+
+
+def test_torch_tracker_output_with_a_batch_dimension_gives_the_same_masks(scene, graph):
+    pairs, flows = graph
+    oracle = oracle_tracks(scene)
+
+    class Batched:  # what a torch tracker returns: (1,T,N,...) tensors
+        tracks = torch.from_numpy(oracle.tracks)[None]
+        visible = torch.from_numpy(oracle.visible)[None]
+        confidence = torch.from_numpy(oracle.confidence)[None]
+        moving = torch.from_numpy(oracle.moving)[None]
+
+    np.testing.assert_array_equal(
+        correspondence_motion_masks(Batched(), flows, pairs).masks, correspondence_motion_masks(oracle, flows, pairs).masks
+    )
+
+
+def test_too_few_static_points_falls_back_to_all_flow_and_warns(scene, graph, caplog):
+    pairs, flows = graph
+    tracks = oracle_tracks(scene)
+    tracks.moving = np.ones_like(tracks.moving)  # the tracker calls everything moving
+    with caplog.at_level(logging.WARNING):
+        result = correspondence_motion_masks(tracks, flows, pairs)
+    assert {info["method"] for info in result.pair_info} == {"all-flow"}
+    assert "fewer than 16 static points" in caplog.text
+    # the box covers a few percent of the frame, so LMedS on all correspondences still finds it
+    assert mask_iou(result.masks, ground_truth_motion_masks(scene))["iou"] > 0.8
+
+
+def test_degenerate_inputs_never_crash():
+    flow = np.zeros((32, 40, 2), np.float32)
+    mask, info = pair_motion_mask(flow, np.zeros((0, 2)))  # no static points, no motion at all
+    assert mask.shape == (32, 40) and info["method"] in ("all-flow", "failed")
+    flow[10:20, 5:15] = (3.0, 0.0)  # a still camera and one moving patch
+    static = np.stack(np.meshgrid(np.arange(20, 40, 2.0), np.arange(0, 32, 2.0)), -1).reshape(-1, 2)
+    mask, info = pair_motion_mask(flow, static)
+    assert info["method"] == "still"
+    expected = np.zeros((32, 40), bool)
+    expected[10:20, 5:15] = True
+    np.testing.assert_array_equal(mask, expected)
+
+
+def test_mismatched_inputs_are_user_errors(scene, graph):
+    pairs, flows = graph
+    with pytest.raises(UserError, match="for 3 pairs"):
+        correspondence_motion_masks(oracle_tracks(scene), flows, pairs[:3])
+    with pytest.raises(UserError, match="outside"):
+        correspondence_motion_masks(oracle_tracks(scene), flows[:1], [(0, 9)])
+    bad = flows.copy()
+    bad[0, 0, 0, 0] = np.nan
+    with pytest.raises(UserError, match="NaN"):
+        correspondence_motion_masks(oracle_tracks(scene), bad, pairs)
+
+
+def test_ego_flow_is_the_flow_of_static_pixels(scene):
+    flow = build_flow("gt", scene=scene).flow(scene.rgb, [(1, 4)])[0]
+    ego = ego_flow(scene.depth[1], scene.intrinsics[1], scene.intrinsics[4], scene.cam_to_world[1], scene.cam_to_world[4])
+    static = scene.segmentation[1] != MOVING_BOX
+    np.testing.assert_allclose(ego[static], flow[static], atol=1e-3)
+    assert np.abs(ego[~static] - flow[~static]).max() > 1.0
+
+
+def test_flow_only_baseline_with_exact_geometry_finds_the_box(scene, graph):
+    pairs, flows = graph
+    sc = scene
+    egos = np.stack([ego_flow(sc.depth[i], sc.intrinsics[i], sc.intrinsics[j], sc.cam_to_world[i], sc.cam_to_world[j]) for i, j in pairs])
+    result = flow_only_motion_masks(flows, egos, pairs, sc.num_frames)
+    assert mask_iou(result.masks, ground_truth_motion_masks(sc))["iou"] > 0.95
+    with pytest.raises(UserError, match="one per pair"):
+        flow_only_motion_masks(flows, egos[:, :10], pairs, sc.num_frames)
+
+
+def test_pairwise_ego_flow_from_clean_pointmaps_is_the_static_flow(scene):
+    source = GroundTruthPointmaps(scene, depth_noise=0.0, smooth_noise=0.0, static_bias=False)
+    pw = source.pointmaps(scene.rgb, np.array([[1, 4]]))
+    ego = pairwise_ego_flow(pw.pts_i[0], pw.pts_j[0], pw.conf_j[0], scene.intrinsics[4])
+    flow = build_flow("gt", scene=scene).flow(scene.rgb, [(1, 4)])[0]
+    static = scene.segmentation[1] != MOVING_BOX
+    np.testing.assert_allclose(ego[static], flow[static], atol=0.05)

@@ -1,0 +1,51 @@
+"""The `c4d` command shell: help, subcommand list, one-line errors."""
+
+import subprocess
+import sys
+
+from c4d.cli import SUBCOMMANDS, main
+
+
+def run_c4d(*args):
+    return subprocess.run([sys.executable, "-m", "c4d", *args], capture_output=True, text=True)
+
+
+def test_help_lists_every_subcommand():
+    result = run_c4d("--help")
+    assert result.returncode == 0
+    for name in SUBCOMMANDS:
+        assert name in result.stdout
+
+
+def test_every_subcommand_has_help():
+    for name in SUBCOMMANDS:
+        result = run_c4d(name, "--help")
+        assert result.returncode == 0, (name, result.stderr)
+        assert "usage: c4d " + name in result.stdout
+
+
+def test_unknown_subcommand_fails():
+    result = run_c4d("frobnicate")
+    assert result.returncode != 0
+    assert "invalid choice" in result.stderr
+
+
+def test_user_error_is_one_line_without_traceback(tmp_path):
+    result = run_c4d("datagen", "--preset", "movi-z", "--num-scenes", "1", "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()]
+    assert "unknown datagen preset 'movi-z'" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_verbose_shows_the_traceback(tmp_path):
+    result = run_c4d("--verbose", "datagen", "--preset", "movi-z", "--num-scenes", "1",
+                     "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert "Traceback" in result.stderr
+
+
+def test_main_returns_exit_code_in_process(tmp_path, capsys):
+    code = main(["datagen", "--preset", "movi-z", "--num-scenes", "1", "--out", str(tmp_path)])
+    assert code == 2
+    assert "c4d: error:" in capsys.readouterr().err

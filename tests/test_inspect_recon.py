@@ -1,0 +1,135 @@
+"""`c4d inspect` on reconstruction directories: reading, checks, pictures, fly-through, CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from c4d.cli import main
+from c4d.inspect import point_render, recon_report
+from c4d_pipeline.synthetic import make_box_scene
+from datagen import geometry, shards
+from datagen.scene import Scene
+
+
+def write_reconstruction(scene: Scene, out: Path) -> Path:
+    """A reconstruction directory as `c4d run` lays it out (INTERFACES.md), made from ground truth."""
+    for folder in ("frames", "depth", "masks"):
+        (out / folder).mkdir(parents=True, exist_ok=True)
+    moving_ids = [k + 1 for k in range(len(scene.objects)) if np.any(
+        scene.moving[scene.track_object == k + 1])] if scene.moving is not None else []
+    masks = np.isin(scene.segmentation, moving_ids)  # (T,H,W)
+    points = np.stack([geometry.unproject_depth_map(d, k, p) for d, k, p in
+                       zip(scene.depth, scene.intrinsics, scene.cam_to_world)]).astype(np.float32)
+    for t in range(scene.num_frames):
+        cv2.imwrite(str(out / f"frames/{t:06d}.png"), scene.rgb[t, ..., ::-1])
+        np.save(out / f"depth/{t:06d}.npy", scene.depth[t])
+        cv2.imwrite(str(out / f"masks/{t:06d}.png"), masks[t].astype(np.uint8) * 255)
+    quat = geometry.quat_to_xyzw(geometry.matrix_to_quat(scene.cam_to_world[:, :3, :3]))  # (T,4)
+    lines = [" ".join(f"{v:.9g}" for v in (t, *scene.cam_to_world[t, :3, 3], *quat[t]))
+             for t in range(scene.num_frames)]
+    (out / "poses_tum.txt").write_text("\n".join(lines) + "\n")
+    np.save(out / "intrinsics.npy", scene.intrinsics)
+    np.savez(out / "pointmaps.npz", points=points, confidence=np.ones(points.shape[:3], np.float32))
+    visible = ~scene.occluded.T
+    np.savez(out / "tracks_2d.npz", tracks=scene.tracks.transpose(1, 0, 2), visible=visible,
+             moving=scene.moving.T.astype(np.float32),
+             queries=np.stack([scene.query_frame, *scene.tracks[np.arange(scene.num_tracks), scene.query_frame].T], -1))
+    np.savez(out / "tracks_3d.npz", tracks_world=scene.tracks_world.transpose(1, 0, 2), valid=visible)
+    static = ~masks
+    cloud = np.concatenate([points[0][static[0]], points[masks]])
+    colors = np.concatenate([scene.rgb[0][static[0]], scene.rgb[masks]])
+    trimesh.PointCloud(cloud, colors=colors).export(out / "scene.ply")
+    (out / "report.json").write_text(json.dumps({"inputs": {"frame_indices": list(range(scene.num_frames))},
+                                                 "seconds": {"optimise": 1.5}}))
+    return out
+
+
+@pytest.fixture(scope="module")
+def box_scene() -> Scene:
+    return make_box_scene(num_frames=8, height=48, width=64, num_tracks=48, seed=3)
+
+
+@pytest.fixture(scope="module")
+def recon_dir(tmp_path_factory, box_scene) -> Path:
+    return write_reconstruction(box_scene, tmp_path_factory.mktemp("recon"))
+
+
+def _not_blank(image: np.ndarray) -> bool:
+    return image.std() > 5 and len(np.unique(image.reshape(-1, 3), axis=0)) > 10
+
+
+def test_reading_a_complete_reconstruction_finds_no_problem(recon_dir, box_scene):
+    recon = recon_report.load_reconstruction(recon_dir)
+    assert recon.problems == []
+    assert recon_report.is_reconstruction(recon_dir)
+    np.testing.assert_allclose(recon.cam_to_world, box_scene.cam_to_world, atol=1e-5)
+    assert recon.frames.shape == box_scene.rgb.shape and recon.masks.any()
+    assert len(recon.ply_points) > 1000 and recon.ply_colors.std() > 0
+
+
+def test_broken_parts_become_problems_not_crashes(tmp_path, recon_dir):
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for item in recon_dir.iterdir():
+        target = broken / item.name
+        if item.is_dir():
+            target.mkdir()
+            for f in item.iterdir():
+                (target / f.name).write_bytes(f.read_bytes())
+        else:
+            target.write_bytes(item.read_bytes())
+    (broken / "scene.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 9")
+    np.save(broken / "depth/000003.npy", np.full((48, 64), np.nan, np.float32))
+    (broken / "masks/000007.png").unlink()
+    problems = " | ".join(recon_report.load_reconstruction(broken).problems)
+    assert "scene.ply cannot be read" in problems
+    assert "depth has" in problems and "NaN" in problems
+    assert "frame counts disagree" in problems and "'masks': 7" in problems
+    assert main(["inspect", str(broken), "--check"]) == 1
+    assert main(["inspect", str(recon_dir), "--check"]) == 0
+
+
+def test_point_splatter_keeps_the_nearest_point_and_projects_like_the_camera():
+    k = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    pose = geometry.look_at(np.array([0.0, -5, 0]), np.zeros(3), np.array([0.0, 0, 1]))
+    points = np.array([[0.0, 0, 0], [0.0, 1, 0], [1.0, 0, 0], [0.0, 0, 0]])  # far copy behind
+    colors = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [9, 9, 9]], np.uint8)
+    image = point_render.render_points(points, colors, k, pose, (48, 64), radius=1)
+    np.testing.assert_array_equal(image[23:26, 31:34].reshape(-1, 3).max(0), (255, 0, 0))
+    uv, _ = geometry.project(points[2], k, pose)
+    np.testing.assert_array_equal(image[int(round(uv[1])), int(round(uv[0]))], (0, 0, 255))
+    assert (image == 255).all(-1).sum() > 48 * 64 - 3 * 9, "background stays white"
+    # the green point lies behind the red one on the same ray: the red one must win
+    assert not (image == (0, 255, 0)).all(-1).any()
+
+
+def test_report_writes_videos_plots_and_a_page(tmp_path, recon_dir, box_scene):
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    with shards.ShardWriter(gt_dir / "test-000000.tar") as writer:
+        writer.write(shards.encode_scene(box_scene, shards.scene_key("test", 0)))
+    out = tmp_path / "report"
+    assert main(["inspect", str(recon_dir), "--out", str(out), "--gt", str(gt_dir), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["problems"] == []
+    assert summary["pose_errors"]["ate"] < 1e-3, "ground truth poses align onto themselves"
+    for name in ("overview.webm", "depth.webm", "masks.webm", "flythrough.webm", "trajectory.png",
+                 "flythrough.png", "ply.png", "index.html"):
+        assert (out / name).is_file(), name
+    from datagen.visualize import read_video_frames
+
+    overview = read_video_frames(out / "overview.webm")
+    assert overview.shape[0] == 8 and overview.shape[1] >= 256 and _not_blank(overview[0])
+    flythrough = read_video_frames(out / "flythrough.webm")
+    assert len(flythrough) == 48 and _not_blank(flythrough[0])
+    assert not np.array_equal(flythrough[0], flythrough[12]), "the virtual camera moves"
+    ply = cv2.imread(str(out / "ply.png"))
+    assert ply.shape == (384, 384, 3) and _not_blank(ply)
+    page = (out / "index.html").read_text()
+    assert "flythrough.webm" in page and "trajectory.png" in page
