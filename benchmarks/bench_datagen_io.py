@@ -1,10 +1,10 @@
 """Benchmark of datagen storage: size and speed of candidate encodings, and CLI throughput.
 
     .venv/bin/python benchmarks/bench_datagen_io.py [--preset movi-e] [--size 256] [--frames 24]
-        [--repeats 5] [--cli-scenes 4] [--skip-cli]
+        [--repeats 5] [--cli-scenes 4] [--skip-cli] [--skip-codecs]
 
-Part 1 generates one real scene and, per field, times every candidate encoding (median of
-`--repeats` runs): MB stored, encode and decode MB/s (of the raw array), whether it is exact, and
+Part 1 generates one real scene and, per field, times every candidate encoding (median CPU time
+of `--repeats` runs): MB stored, encode and decode MB/s (of the raw array), whether it is exact, and
 the stored size relative to the raw .npy baseline. Then whole scenes: `encode_scene` and
 `decode_scene` (all fields, and the fields training reads). Part 2 runs `c4d datagen` with one
 worker and with all cores on a few scenes and reports scenes per hour. Prints markdown tables.
@@ -34,13 +34,23 @@ from datagen.shards import decode_array, decode_scene, encode_array, encode_scen
 
 
 def median_seconds(fn, repeats: int):
-    """(last result, median seconds) of `repeats` calls of `fn`."""
+    """(last result, median CPU seconds) of `repeats` calls of `fn`.
+
+    CPU time of this process, not wall time: the codecs are single-threaded and the machine may be
+    shared, so CPU time is the reproducible cost (it equals wall time on an idle core).
+    """
     times = []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start = time.process_time()
         result = fn()
-        times.append(time.perf_counter() - start)
+        times.append(time.process_time() - start)
     return result, float(np.median(times))
+
+
+def _zlib_rle(data: bytes) -> bytes:
+    """zlib level 1 with the run-length-only strategy (a standard zlib stream)."""
+    compressor = zlib.compressobj(1, zlib.DEFLATED, 15, 8, zlib.Z_RLE)
+    return compressor.compress(data) + compressor.flush()
 
 
 # --- candidate encodings: name -> (encode(array) -> bytes, decode(bytes, like) -> array) --------
@@ -96,6 +106,7 @@ FLOAT_CODECS = {
     "npy + lzma 0": (lambda a: lzma.compress(_npy(a), preset=0), lambda d, a: _from_npy(lzma.decompress(d), a)),
     "npy + bz2 9": (lambda a: bz2.compress(_npy(a), 9), lambda d, a: _from_npy(bz2.decompress(d), a)),
     "shuffle + zlib 1 (.npy.bsz, chosen)": (encode_array, lambda d, a: decode_array(d)),
+    "shuffle + zlib 1 RLE strategy": (lambda a: _zlib_rle(_shuffled(a)), lambda d, a: _unshuffled(zlib.decompress(d), a)),
     "shuffle + zlib 6": (lambda a: zlib.compress(_shuffled(a), 6), lambda d, a: _unshuffled(zlib.decompress(d), a)),
     "shuffle + lzma 0": (lambda a: lzma.compress(_shuffled(a), preset=0), lambda d, a: _unshuffled(lzma.decompress(d), a)),
     "TIFF deflate + float predictor": _image(".tiff", [
@@ -145,12 +156,12 @@ def scene_rows(scene, repeats: int) -> list[str]:
     raw = sum(v.nbytes for v in vars(scene).values() if isinstance(v, np.ndarray))
     stored = sum(len(v) for k, v in sample.items() if not k.startswith("__"))
     rows = [f"| whole scene, encode_scene | {stored / 1e6:.2f} MB stored of {raw / 1e6:.2f} MB raw | "
-            f"{t_enc * 1e3:.0f} ms | {raw / 1e6 / t_enc:.0f} MB/s |"]
+            f"{t_enc * 1e3:.0f} ms CPU | {raw / 1e6 / t_enc:.0f} MB/s |"]
     for label, fields in (("all fields", None), ("training fields (rgb, tracks, occluded, query_frame, "
                                                  "track_object, moving)",
                                                  ["rgb", "tracks", "occluded", "query_frame", "track_object", "moving"])):
         _, t_dec = median_seconds(lambda: decode_scene(sample, fields), repeats)
-        rows.append(f"| decode_scene, {label} | | {t_dec * 1e3:.0f} ms | {raw / 1e6 / t_dec:.0f} MB/s |")
+        rows.append(f"| decode_scene, {label} | | {t_dec * 1e3:.0f} ms CPU | {raw / 1e6 / t_dec:.0f} MB/s |")
     return rows
 
 
@@ -174,7 +185,8 @@ def measure_codecs(scene, repeats: int) -> None:
 
 def measure_cli(preset: str, size: int, frames: int, num_scenes: int) -> None:
     cores = usable_cpus()
-    print(f"\n### `c4d datagen` throughput, {preset} {size}x{size} x {frames} frames, {num_scenes} scenes\n")
+    print(f"\n### `c4d datagen` throughput, {preset} {size}x{size} x {frames} frames, {num_scenes} scenes "
+          f"(wall time, load average {os.getloadavg()[0]:.1f} before)\n")
     print("| workers | seconds | scenes/hour | MB per scene | vs 1 worker |\n|---|---|---|---|---|")
     base = None
     for workers in sorted({1, cores}):
@@ -201,6 +213,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--cli-scenes", type=int, default=4)
     parser.add_argument("--skip-cli", action="store_true")
+    parser.add_argument("--skip-codecs", action="store_true")
     args = parser.parse_args()
 
     require_egl()
@@ -208,9 +221,10 @@ def main() -> None:
 
     cfg = load_config("datagen", args.preset, overrides=[f"resolution=[{args.size},{args.size}]",
                                                           f"frames={args.frames}"])
-    print(f"machine: {usable_cpus()} usable cores; numpy {np.__version__}, "
-          f"OpenCV {cv2.__version__}, zlib {zlib.ZLIB_RUNTIME_VERSION}")
-    measure_codecs(generate_scene(cfg, 0), args.repeats)
+    print(f"machine: {usable_cpus()} usable cores, load average {os.getloadavg()[0]:.1f}; "
+          f"numpy {np.__version__}, OpenCV {cv2.__version__}, zlib {zlib.ZLIB_RUNTIME_VERSION}")
+    if not args.skip_codecs:
+        measure_codecs(generate_scene(cfg, 0), args.repeats)
     if not args.skip_cli:
         measure_cli(args.preset, args.size, args.frames, args.cli_scenes)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -22,8 +23,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
 from c4d.errors import UserError
-from c4d_pipeline.pointmaps import PairwisePointmaps
 from c4d_pipeline.scene_params import pixel_rays
+
+if TYPE_CHECKING:  # pointmaps imports this module
+    from c4d_pipeline.pointmaps import PairwisePointmaps
 
 log = logging.getLogger(__name__)
 

@@ -1,20 +1,17 @@
 """`c4d eval-recon`: score a reconstruction directory against a generated scene's ground truth.
 
-Reads OUT (the layout `c4d run` writes: poses_tum.txt, depth/%06d.npy, masks/%06d.png,
-intrinsics.npy, report.json) and one scene of SCENE_SOURCE, and writes a JSON of the pose, depth
-and motion-mask metrics of `c4d_pipeline.eval_metrics`. The reconstruction may use a subset of
-the scene's frames (their scene indices are taken from report.json's `inputs.frame_indices`, else
-from the TUM timestamps, else all frames in order) at another resolution (its depth is resized to
-the scene's with bicubic interpolation, its masks nearest).
+Reads OUT (as `c4d run` writes it, read by `c4d_pipeline.outputs`) and one scene of
+SCENE_SOURCE, and writes a JSON of the pose, depth and motion-mask metrics of
+`c4d_pipeline.eval_metrics`. The reconstruction may use a subset of the scene's frames (their scene
+indices come from report.json's `inputs.frame_indices`; without it, all frames in order) at another
+resolution (its depth is resized to the scene's bicubically, as MonST3R's evaluation does, its
+masks by nearest neighbour). The JSON records which scene frames were compared.
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
-import json
-import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -23,81 +20,36 @@ import numpy as np
 from c4d.errors import UserError
 from c4d_pipeline.eval_metrics import DEPTH_ALIGNMENTS, depth_metrics, mask_iou, pose_metrics
 from c4d_pipeline.motion_mask import ground_truth_motion_masks
+from c4d_pipeline.outputs import Reconstruction, read_reconstruction
 from datagen import read_scenes
-from datagen.geometry import make_pose, quat_to_matrix
 from datagen.scene import Scene
 from datagen.shards import write_json_atomic
 
-log = logging.getLogger(__name__)
 
-
-@dataclass
-class Reconstruction:
-    """What eval-recon reads of a reconstruction directory (T frames at h x w)."""
-
-    cam_to_world: np.ndarray  # float64 (T,4,4)
-    timestamps: np.ndarray  # float64 (T,)
-    depth: np.ndarray  # float32 (T,h,w)
-    masks: np.ndarray | None  # bool (T,h,w), True = dynamic
-    report: dict
-
-
-def read_tum_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Timestamps (T,) and camera-to-world poses (T,4,4) of a TUM file `t tx ty tz qx qy qz qw`."""
-    try:
-        rows = [line.split() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
-        values = np.array(rows, dtype=np.float64)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"cannot read poses {path}: {exc}; it must hold lines 't tx ty tz qx qy qz qw'") from exc
-    if values.ndim != 2 or values.shape[1] != 8 or len(values) == 0:
-        raise UserError(f"poses {path} must hold one line of 8 numbers per frame (t tx ty tz qx qy qz qw)")
-    quat_wxyz = values[:, [7, 4, 5, 6]]
-    return values[:, 0], make_pose(quat_to_matrix(quat_wxyz), values[:, 1:4])
-
-
-def read_reconstruction(out: str | Path) -> Reconstruction:
-    """Read the files eval-recon needs from a reconstruction directory; clear errors if absent."""
-    out = Path(out)
-    if not (out / "poses_tum.txt").is_file():
-        raise UserError(f"{out} is not a reconstruction directory (no poses_tum.txt); give the OUT of `c4d run`")
-    timestamps, cam_to_world = read_tum_poses(out / "poses_tum.txt")
-    depth_files = sorted((out / "depth").glob("*.npy"))
-    if len(depth_files) != len(timestamps):
-        raise UserError(f"{out} has {len(timestamps)} poses but {len(depth_files)} depth/*.npy files; rerun `c4d run`")
-    depth = np.stack([np.load(f).astype(np.float32) for f in depth_files])  # (T,h,w)
-    mask_files = sorted((out / "masks").glob("*.png"))
-    masks = None
-    if mask_files:
-        if len(mask_files) != len(timestamps):
-            raise UserError(f"{out} has {len(timestamps)} poses but {len(mask_files)} masks/*.png files; rerun `c4d run`")
-        masks = np.stack([cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127 for f in mask_files])  # (T,h,w)
-    report = {}
-    if (out / "report.json").is_file():
-        try:
-            report = json.loads((out / "report.json").read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise UserError(f"cannot read {out / 'report.json'}: {exc}; rerun `c4d run`") from exc
-    return Reconstruction(cam_to_world, timestamps, depth, masks, report)
+def check_reconstruction(recon: Reconstruction) -> None:
+    """Raise `UserError` unless poses, depth maps and masks agree on the number of frames."""
+    counts = {"poses": len(recon.cam_to_world), "depth maps": len(recon.depth), "masks": len(recon.masks)}
+    if len(set(counts.values())) != 1:
+        found = ", ".join(f"{n} {name}" for name, n in counts.items())
+        raise UserError(f"the reconstruction has {found}; they must match, rerun `c4d run`")
 
 
 def scene_frame_indices(recon: Reconstruction, num_scene_frames: int) -> tuple[list[int], str]:
     """The scene frame index of every reconstructed frame, and where it came from."""
-    count = len(recon.timestamps)
-    recorded = recon.report.get("inputs", {}).get("frame_indices", recon.report.get("frame_indices"))
+    count = recon.num_frames
+    recorded = recon.report.get("inputs", {}).get("frame_indices")
     if recorded is not None:
         indices, origin = [int(i) for i in recorded], "report.json"
     elif count == num_scene_frames:
         indices, origin = list(range(count)), "all frames"
-    elif np.allclose(recon.timestamps, np.round(recon.timestamps)):
-        indices, origin = [int(round(t)) for t in recon.timestamps], "poses_tum.txt timestamps"
     else:
         raise UserError(
-            f"the reconstruction has {count} frames, the scene {num_scene_frames}, and nothing says which "
-            "were used; add inputs.frame_indices to report.json or integer frame timestamps to poses_tum.txt"
+            f"the reconstruction has {count} frames, the scene {num_scene_frames}, and its report.json "
+            "does not say which were used (inputs.frame_indices); reconstruct the whole scene"
         )
     if len(indices) != count or not all(0 <= i < num_scene_frames for i in indices):
         raise UserError(
-            f"frame indices from {origin} ({indices[:5]}...) do not fit {count} reconstructed frames of a "
+            f"report.json's frame indices {indices[:5]}... do not fit {count} reconstructed frames of a "
             f"{num_scene_frames}-frame scene; is --scene-index the scene that was reconstructed?"
         )
     return indices, origin
@@ -121,6 +73,7 @@ def _resize(video: np.ndarray, hw: tuple[int, int], interpolation: int) -> np.nd
 
 def evaluate(recon: Reconstruction, scene: Scene, max_depth: float | None = None) -> dict:
     """All metrics of a reconstruction against its scene (see eval_metrics for conventions)."""
+    check_reconstruction(recon)
     indices, origin = scene_frame_indices(recon, scene.num_frames)
     hw = scene.image_size
     result = {
@@ -134,7 +87,7 @@ def evaluate(recon: Reconstruction, scene: Scene, max_depth: float | None = None
         result["depth"] = {
             mode: depth_metrics(pred_depth, scene.depth[indices], mode, max_depth) for mode in DEPTH_ALIGNMENTS
         }
-    if recon.masks is not None and scene.depth is not None and scene.object_to_world is not None:
+    if scene.depth is not None and scene.segmentation is not None and scene.object_to_world is not None:
         gt_masks = ground_truth_motion_masks(scene)[indices]  # (T,H,W)
         pred_masks = _resize(recon.masks.astype(np.uint8), hw, cv2.INTER_NEAREST).astype(bool)
         result["mask"] = {**mask_iou(pred_masks, gt_masks), "gt_dynamic_fraction": float(gt_masks.mean())}

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from c4d.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rNet, load_dust3r
@@ -45,24 +45,28 @@ class Dust3rPointmaps:
     """Pointmap source running a `Dust3rNet` on image pairs.
 
     net: the network (eval mode); device: torch device (default cuda if available, else cpu);
-    batch_size: pairs per forward pass, or 0 for automatic (GPU: from free memory; CPU: 2).
+    batch_size: pairs per forward pass, or 0 for automatic (GPU: from free memory; CPU: 2);
+    progress: show a progress bar over the pairs.
     """
 
-    def __init__(self, net: Dust3rNet, device: str | torch.device | None = None, batch_size: int = 0):
+    def __init__(self, net: Dust3rNet, device: str | torch.device | None = None, batch_size: int = 0,
+                 progress: bool = False):
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.net = net.to(self.device).eval()
         if batch_size < 0:
             raise UserError(f"pointmap batch size must be >= 0 (0 = automatic), got {batch_size}")
         self.batch_size = batch_size
+        self.progress = progress
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, device=None, batch_size: int = 0) -> "Dust3rPointmaps":
+    def from_checkpoint(cls, path: str | Path, device=None, batch_size: int = 0,
+                        progress: bool = False) -> "Dust3rPointmaps":
         """Load an official DUSt3R/MASt3R/MonST3R checkpoint file (see `load_dust3r`)."""
         net, report = load_dust3r(path)
         if report.ignored_keys:
             log.info("pointmap checkpoint %s: ignored %d tensors not used for pointmaps",
                      path, len(report.ignored_keys))
-        return cls(net, device, batch_size)
+        return cls(net, device, batch_size, progress)
 
     @property
     def image_size(self) -> int:
@@ -90,12 +94,8 @@ class Dust3rPointmaps:
             outputs = self.net(img1, img2)
         return [o.float().cpu().numpy() for o in outputs]
 
-    def pointmaps(self, frames: np.ndarray, edges: np.ndarray,
-                  progress: Callable[[int], None] | None = None) -> PairwisePointmaps:
-        """frames uint8 (T,H,W,3) at network resolution; edges int (E,2) -> PairwisePointmaps.
-
-        `progress(n)` is called after every batch with the number of pairs it finished.
-        """
+    def pointmaps(self, frames: np.ndarray, edges: np.ndarray) -> PairwisePointmaps:
+        """frames uint8 (T,H,W,3) at network resolution; edges int (E,2) -> PairwisePointmaps."""
         if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3:
             raise UserError(f"the pointmap network needs uint8 RGB frames (T,H,W,3), got "
                             f"{frames.dtype} {frames.shape}")
@@ -115,6 +115,7 @@ class Dust3rPointmaps:
         out |= {k: np.empty((E, H, W), np.float32) for k in ("conf_i", "conf_j")}
         batch = self.batch_size or self._auto_batch(H, W)
         start = 0
+        bar = tqdm(total=E, desc="pointmaps", unit="pair", disable=not self.progress, leave=False)
         while start < E:
             stop = min(start + batch, E)
             try:
@@ -130,9 +131,9 @@ class Dust3rPointmaps:
             sl = slice(start, stop)
             out["pts_i"][sl], out["conf_i"][sl] = sanitize(pts_i, conf_i)
             out["pts_j"][sl], out["conf_j"][sl] = sanitize(pts_j, conf_j)
-            if progress is not None:
-                progress(stop - start)
+            bar.update(stop - start)
             start = stop
+        bar.close()
         result = PairwisePointmaps(edges=edges, **out)
         result.validate(T, (H, W))
         return result

@@ -9,7 +9,8 @@ C4D's correspondence-guided mask, for every directed pair (t, t') of the scene g
      by least squares on the LMedS inliers; it describes the camera motion only;
   4. the Sampson distance (pixels) of every dense flow correspondence of frame t to it, and a
      threshold: pixels that break the epipolar constraint are dynamic;
-  5. the mask of frame t is the union over all pairs (t, t') of the graph.
+  5. the mask of frame t is the union over all pairs (t, t') of the graph (optionally only
+     those with |t - t'| <= `max_pair_offset`, for flows that fail on distant frames).
 Fallbacks, each logged once per call and listed in `MotionMasks.pair_info`:
   - fewer than `min_static_points` static points (or LMedS fails on them): the fundamental
     matrix is estimated by LMedS from a regular grid of ALL flow correspondences of the pair,
@@ -56,6 +57,9 @@ class MotionMaskConfig:
     fallback_grid_points: int = 2048  # about this many grid correspondences in the fallback
     still_camera_px: float = 0.25  # 90 % of static points move less: the camera stands still
     seed: int = 0  # seed of LMedS's random sampling
+    max_pair_offset: int = 0  # use only graph pairs |i - j| <= this (0: all pairs, as the paper)
+    noise_sigmas: float = 0.0  # threshold >= this many robust sigmas of the static points' distances
+    judge_out_of_view: bool = True  # False: pixels whose flow leaves frame t' are never dynamic
 
 
 @dataclass
@@ -144,13 +148,14 @@ def sampson_distance(fundamental: np.ndarray, x1: np.ndarray, x2: np.ndarray) ->
     return np.abs(algebraic) / np.maximum(gradient, 1e-12)
 
 
-def _fundamental_lmeds(x1: np.ndarray, x2: np.ndarray, seed: int) -> np.ndarray | None:
-    """F (3,3) from correspondences (M,2) <-> (M,2) by LMedS, or None if there is no solution.
+def _fundamental_lmeds(x1: np.ndarray, x2: np.ndarray, seed: int) -> tuple[np.ndarray, float] | None:
+    """(F (3,3), sigma) from correspondences (M,2) <-> (M,2) by LMedS, or None without a solution.
 
     As in Rousseeuw's LMedS, the minimal-sample solution is followed by a least-squares refit
     (normalised 8-point) on its inliers: residuals within 2.5 robust standard deviations
     sigma = 1.4826 (1 + 5 / (M - 7)) sqrt(median r^2). The refit matters on near-planar static
     sets (a floor), where many F fit the sampled points and only the off-plane points decide.
+    sigma (pixels, of the final F's Sampson residuals) measures the flow's noise on these points.
     """
     if len(x1) < 8:
         return None
@@ -159,14 +164,19 @@ def _fundamental_lmeds(x1: np.ndarray, x2: np.ndarray, seed: int) -> np.ndarray 
     fundamental, _ = cv2.findFundamentalMat(x1, x2, cv2.FM_LMEDS)
     if fundamental is None or fundamental.shape != (3, 3) or not np.isfinite(fundamental).all():
         return None
-    residual = sampson_distance(fundamental, x1, x2)  # (M,) pixels
-    sigma = 1.4826 * (1 + 5 / max(len(x1) - 7, 1)) * np.sqrt(np.median(residual**2))
+
+    def robust_sigma(f: np.ndarray) -> tuple[np.ndarray, float]:
+        residual = sampson_distance(f, x1, x2)  # (M,) pixels
+        return residual, 1.4826 * (1 + 5 / max(len(x1) - 7, 1)) * float(np.sqrt(np.median(residual**2)))
+
+    residual, sigma = robust_sigma(fundamental)
     inliers = residual <= max(2.5 * sigma, 1e-6)
     if inliers.sum() >= 8:
         refit, _ = cv2.findFundamentalMat(x1[inliers], x2[inliers], cv2.FM_8POINT)
         if refit is not None and refit.shape == (3, 3) and np.isfinite(refit).all():
             fundamental = refit
-    return fundamental
+            sigma = robust_sigma(fundamental)[1]
+    return fundamental, sigma
 
 
 def _grid_points(height: int, width: int, count: int) -> np.ndarray:
@@ -192,19 +202,24 @@ def pair_motion_mask(flow: np.ndarray, static_xy: np.ndarray, cfg: MotionMaskCon
         if np.percentile(np.linalg.norm(dst - src, axis=-1), 90) < cfg.still_camera_px:  # F undefined
             info["method"] = "still"
             return np.linalg.norm(flow, axis=-1) > cfg.sampson_threshold_px, info
-        fundamental = _fundamental_lmeds(src, dst, cfg.seed)
+        fit = _fundamental_lmeds(src, dst, cfg.seed)
     else:
-        fundamental = None
-    if fundamental is None:
+        fit = None
+    if fit is None:
         info["method"] = "all-flow"
         src = _grid_points(height, width, cfg.fallback_grid_points)  # (M,2)
         dst = src + flow[src[:, 1].astype(int), src[:, 0].astype(int)]
-        fundamental = _fundamental_lmeds(src, dst, cfg.seed)
-    if fundamental is None:
+        fit = _fundamental_lmeds(src, dst, cfg.seed)
+    if fit is None:
         info["method"] = "failed"
         return np.zeros((height, width), bool), info
-    distance = sampson_distance(fundamental, grid, grid + flow)  # (H,W) pixels
-    return distance > cfg.sampson_threshold_px, info
+    fundamental, sigma = fit
+    threshold = max(cfg.sampson_threshold_px, cfg.noise_sigmas * sigma)
+    info |= {"sigma_px": sigma, "threshold_px": threshold}
+    target = grid + flow  # (H,W,2)
+    distance = sampson_distance(fundamental, grid, target)  # (H,W) pixels
+    in_view = (target[..., 0] > -0.5) & (target[..., 0] < width - 0.5) & (target[..., 1] > -0.5) & (target[..., 1] < height - 0.5)
+    return (distance > threshold) & (in_view | cfg.judge_out_of_view), info
 
 
 def _check_flows(flows: np.ndarray, pairs: Sequence[Pair], num_frames: int) -> None:
@@ -236,6 +251,8 @@ def correspondence_motion_masks(
     _check_flows(flows, pairs, num_frames)
     pair_masks, infos = [], []
     for flow, (i, j) in zip(flows, pairs):
+        if cfg.max_pair_offset and abs(j - i) > cfg.max_pair_offset:
+            continue
         mask, info = pair_motion_mask(flow, static_points(tracks, i, cfg), cfg)
         pair_masks.append(mask)
         infos.append({"pair": [int(i), int(j)], **info})
@@ -247,9 +264,9 @@ def correspondence_motion_masks(
             len(fallbacks), len(pairs), cfg.min_static_points, fallbacks[:5],
         )
     masks = np.zeros((num_frames, *flows.shape[1:3]), bool)  # (T,H,W)
-    for mask, (i, _) in zip(pair_masks, pairs):
-        masks[i] |= mask  # union over the pairs that start at frame i
-    _warn_frames_without_pairs(pairs, num_frames)
+    for mask, info in zip(pair_masks, infos):
+        masks[info["pair"][0]] |= mask  # union over the pairs that start at frame i
+    _warn_frames_without_pairs([info["pair"] for info in infos], num_frames)
     return MotionMasks(masks, infos)
 
 

@@ -27,10 +27,18 @@ log = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------- GA
 
 
+def affine(points: torch.Tensor, mat: torch.Tensor, trans: torch.Tensor | None = None) -> torch.Tensor:
+    """A x + t for points (e,P,3), mat (e,3,3), trans (e,3) or None -> (e,P,3) (one fused
+    batched multiply-add; measured faster on CPU than einsum or broadcast products)."""
+    if trans is None:
+        return torch.bmm(points, mat.transpose(1, 2))
+    return torch.baddbmm(trans[:, None], points, mat.transpose(1, 2))
+
+
 def apply_similarity(points: torch.Tensor, scale: torch.Tensor, rot: torch.Tensor,
                      trans: torch.Tensor) -> torch.Tensor:
     """sigma R x + t for points (e,P,3), scale (e,), rot (e,3,3), trans (e,3) -> (e,P,3)."""
-    return scale[:, None, None] * torch.einsum("eij,epj->epi", rot, points) + trans[:, None]
+    return affine(points, scale[:, None, None] * rot, trans)
 
 
 def global_alignment_sum(world: torch.Tensor, ei: torch.Tensor, ej: torch.Tensor,
@@ -58,8 +66,8 @@ def ego_flow(cam_points_i: torch.Tensor, cam_to_world_i: torch.Tensor,
     Returns flow (e,P,2) and the depth of each point in camera j (e,P).
     """
     rel = torch.linalg.solve(cam_to_world_j, cam_to_world_i)  # (e,4,4) camera i -> camera j
-    in_j = torch.einsum("eij,epj->epi", rel[:, :3, :3], cam_points_i) + rel[:, None, :3, 3]
-    proj = torch.einsum("eij,epj->epi", k_j, in_j)  # (e,P,3)
+    in_j = affine(cam_points_i, rel[:, :3, :3], rel[:, :3, 3])  # (e,P,3)
+    proj = affine(in_j, k_j)  # (e,P,3)
     z = proj[..., 2]
     uv = proj[..., :2] / z.clamp_min(1e-6)[..., None]  # (e,P,2)
     return uv - pixels, in_j[..., 2]

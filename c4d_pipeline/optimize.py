@@ -40,6 +40,7 @@ class OptimisationResult:
     intrinsics: np.ndarray  # (T,3,3)
     points: np.ndarray  # (T,H,W,3) world pointmaps
     confidence: np.ndarray  # (T,H,W) max raw confidence over the frame's pairs
+    depth_stage1: np.ndarray  # (T,H,W) depth after stage 1 (before PTS)
     history: dict = field(default_factory=dict)  # seconds and per-iteration losses per stage
 
 
@@ -145,12 +146,12 @@ def _stage1_step(params: SceneParams, data: _Inputs, weights, cfg: _StepCfg, pix
     tensors = [x for x, _ in pairs] + ([weights.cts * cts] if weights.cts > 0 else [])
     grads = [g for _, g in pairs] + ([torch.ones_like(cts)] if weights.cts > 0 else [])
     torch.autograd.backward(tensors, grads)
-    total = weights.ga * ga_total + weights.cma * cma_total + weights.cts * float(cts)
-    return {"total": total, "ga": ga_total, "cma": cma_total, "cts": float(cts)}
+    total = weights.ga * ga_total + weights.cma * cma_total + weights.cts * float(cts.detach())
+    return {"total": total, "ga": ga_total, "cma": cma_total, "cts": float(cts.detach())}
 
 
 def _run_adam(params_list, steps, cfg, step_fn, stage: str, progress: bool) -> dict:
-    """Adam with the configured schedule; returns {loss name: [per-iteration values]}."""
+    """Adam with the configured schedule; returns {loss name or 'seconds': [per-iteration values]}."""
     opt = torch.optim.Adam(params_list, lr=cfg.lr, betas=tuple(cfg.betas))
     curves: dict[str, list[float]] = {}
     for it in tqdm(range(steps), desc=stage, disable=not progress, leave=False):
@@ -158,10 +159,12 @@ def _run_adam(params_list, steps, cfg, step_fn, stage: str, progress: bool) -> d
         for group in opt.param_groups:
             group["lr"] = lr
         opt.zero_grad(set_to_none=True)
+        tic = time.perf_counter()
         losses = step_fn()
         if not math.isfinite(losses["total"]):
             raise FloatingPointError(f"{stage}: loss became non-finite at iteration {it}")
         opt.step()
+        losses["seconds"] = time.perf_counter() - tic
         for name, value in losses.items():
             curves.setdefault(name, []).append(value)
     return curves
@@ -207,6 +210,7 @@ def optimise(
         list(params.parameters()), opt_cfg.stage1_iters, opt_cfg,
         lambda: _stage1_step(params, data, weights, step_cfg, pixels), "stage 1 (GA+CMA+CTS)", progress)
     history["seconds"]["stage1"] = time.perf_counter() - start
+    depth_stage1 = params.depth().detach().cpu().numpy().astype(np.float32)
 
     run_pts = weights.pts > 0 and opt_cfg.stage2_iters > 0 and tracks is not None
     if weights.pts > 0 and tracks is None:
@@ -229,7 +233,7 @@ def optimise(
         def stage2_step():
             pts = objectives.point_smoothness(params.world_points(), targets, has_target)
             (weights.pts * pts).backward()
-            return {"total": weights.pts * float(pts), "pts": float(pts)}
+            return {"total": weights.pts * float(pts.detach()), "pts": float(pts.detach())}
 
         start = time.perf_counter()
         history["losses"]["stage2"] = _run_adam([params.log_depth], opt_cfg.stage2_iters, opt_cfg,
@@ -243,6 +247,7 @@ def optimise(
             intrinsics=params.intrinsics().cpu().numpy().astype(np.float32),
             points=params.world_points().cpu().numpy().astype(np.float32),
             confidence=frame_confidence(pw, num_frames),
+            depth_stage1=depth_stage1,
             history=history,
         )
     return result

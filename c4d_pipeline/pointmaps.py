@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 
 from c4d.errors import UserError
+from c4d_pipeline.alignment import weighted_procrustes
+from c4d_pipeline.flow import scene_point_motion
 from datagen import geometry
 
 log = logging.getLogger(__name__)
@@ -186,19 +188,16 @@ class GroundTruthPointmaps:
         """(H,W,3) float64: frame t's pixels in its own camera frame."""
         return geometry.unproject_depth_map(self.scene.depth[t], self.scene.intrinsics[t], np.eye(4))
 
-    def _carry(self, points_cam: np.ndarray, src: int, dst: int) -> np.ndarray:
-        """Camera-`src`-frame points (H,W,3) of frame src -> the same surface points at time dst,
-        in camera `dst`'s frame, following each pixel's object (background stays put)."""
-        sc = self.scene
-        world = geometry.transform_points(sc.cam_to_world[src].astype(np.float64), points_cam)
-        seg = sc.segmentation[src]
-        for k in np.unique(seg):
-            if k == 0:
-                continue
-            motion = sc.object_to_world[k - 1, dst] @ geometry.invert_pose(sc.object_to_world[k - 1, src])
-            sel = seg == k
-            world[sel] = geometry.transform_points(motion, world[sel])
-        return geometry.transform_points(geometry.invert_pose(sc.cam_to_world[dst]), world)
+    def correspondences(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """All 3-D correspondences of pair (i, j): the surface points seen by either view, at time
+        j in camera j's frame (M,3) and at time i in camera i's frame (M,3), M = 2 H W."""
+        to_i = geometry.invert_pose(self.scene.cam_to_world[i].astype(np.float64))
+        to_j = geometry.invert_pose(self.scene.cam_to_world[j].astype(np.float64))
+        at_i, at_j = scene_point_motion(self.scene, i, j)  # view i's pixels, world, times i and j
+        bt_j, bt_i = scene_point_motion(self.scene, j, i)  # view j's pixels, world, times j and i
+        src = geometry.transform_points(to_j, np.concatenate([at_j, bt_j]).reshape(-1, 3))
+        dst = geometry.transform_points(to_i, np.concatenate([at_i, bt_i]).reshape(-1, 3))
+        return src, dst
 
     def relative_pose(self, i: int, j: int) -> np.ndarray:
         """(4,4) similarity taking camera-j-frame points into camera i's frame, as used for pts_j."""
@@ -206,14 +205,7 @@ class GroundTruthPointmaps:
         true = geometry.invert_pose(sc.cam_to_world[i].astype(np.float64)) @ sc.cam_to_world[j]
         if not self.static_bias:
             return true
-        from c4d_pipeline.alignment import weighted_procrustes
-
-        x_i = self._camera_points(i)  # (H,W,3) cam i
-        y_i = self._carry(x_i, i, j)  # (H,W,3) same surface at time j, cam j
-        y_j = self._camera_points(j)  # cam j
-        x_j = self._carry(y_j, j, i)  # cam i
-        src = np.concatenate([y_i.reshape(-1, 3), y_j.reshape(-1, 3)])  # (2HW,3) in cam j
-        dst = np.concatenate([x_i.reshape(-1, 3), x_j.reshape(-1, 3)])  # (2HW,3) in cam i
+        src, dst = self.correspondences(i, j)
         weights = np.full(src.shape[0], self.conf_max)
         scale, rot, trans = weighted_procrustes(
             torch.from_numpy(src)[None], torch.from_numpy(dst)[None], torch.from_numpy(weights)[None],

@@ -125,8 +125,10 @@ class SceneParams(nn.Module):
 
     def world_points(self, cam_points: torch.Tensor | None = None) -> torch.Tensor:
         """(T,H,W,3) the global pointmaps X^t (from `camera_points()` unless given)."""
+        from c4d_pipeline.objectives import affine
+
         cam = self.camera_points() if cam_points is None else cam_points  # (T,H,W,3)
-        return torch.einsum("tij,thwj->thwi", self.rotations(), cam) + self.trans[:, None, None]
+        return affine(cam.flatten(1, 2), self.rotations(), self.trans).reshape(cam.shape)
 
     def edge_similarities(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per-edge (scale (E,), rotation (E,3,3), translation (E,3)); mean log-scale held fixed."""

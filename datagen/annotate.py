@@ -25,28 +25,42 @@ def segment_poses(object_to_world: np.ndarray) -> np.ndarray:
     return np.concatenate([backdrop, object_to_world], axis=0)
 
 
-def flow_between(depth: np.ndarray, segmentation: np.ndarray, intrinsics: np.ndarray,
+def camera_points(depth: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    """(H,W,3) float32 camera-frame point seen at every pixel centre of a z-depth map (H,W)."""
+    height, width = depth.shape
+    pixels = np.concatenate([geometry.pixel_grid(height, width), np.ones((height, width, 1))], -1)
+    rays = pixels @ np.linalg.inv(intrinsics).T  # (H,W,3) with z = 1
+    return (rays * depth[..., None]).astype(np.float32)
+
+
+def flow_between(points_src: np.ndarray, segmentation_src: np.ndarray, intrinsics_dst: np.ndarray,
                  cam_to_world: np.ndarray, poses: np.ndarray, src: int, dst: int) -> np.ndarray:
     """(H,W,2) (dx, dy) motion of the surface seen at each pixel of frame `src` to frame `dst`.
 
-    poses: (K+1,T,4,4) from `segment_poses`.
+    points_src: (H,W,3) from `camera_points` for frame src; segmentation_src (H,W);
+    cam_to_world (T,4,4); poses (K+1,T,4,4) from `segment_poses`.
     """
-    points = geometry.unproject_depth_map(depth[src], intrinsics[src], cam_to_world[src])  # (H,W,3)
-    relative = poses[:, dst] @ geometry.invert_pose(poses[:, src])  # (K+1,4,4) src -> dst
-    moved = geometry.transform_points(relative[segmentation[src]], points)  # (H,W,3)
-    pixels, _ = geometry.project(moved, intrinsics[dst], cam_to_world[dst])  # (H,W,2)
-    return (pixels - geometry.pixel_grid(*depth.shape[1:])).astype(np.float32)
+    # Per segment: src camera -> world -> the segment's motion src -> dst -> dst camera.
+    motion = poses[:, dst] @ geometry.invert_pose(poses[:, src])  # (K+1,4,4)
+    cam_motion = geometry.invert_pose(cam_to_world[dst]) @ motion @ cam_to_world[src]
+    per_pixel = cam_motion[:, :3].astype(np.float32)[segmentation_src]  # (H,W,3,4)
+    points_dst = np.einsum("hwij,hwj->hwi", per_pixel[..., :3], points_src) + per_pixel[..., 3]
+    projected = points_dst @ intrinsics_dst.T.astype(np.float32)  # (H,W,3)
+    pixels = projected[..., :2] / projected[..., 2:]
+    return pixels - geometry.pixel_grid(*segmentation_src.shape).astype(np.float32)
 
 
 def optical_flow(depth, segmentation, intrinsics, cam_to_world, object_to_world):
     """Forward and backward flow (T,H,W,2); flow_fwd[T-1] and flow_bwd[0] are zero (invalid)."""
     poses = segment_poses(object_to_world)
-    num_frames = depth.shape[0]
     fwd = np.zeros(depth.shape + (2,), np.float32)
     bwd = np.zeros(depth.shape + (2,), np.float32)
-    for t in range(num_frames - 1):
-        fwd[t] = flow_between(depth, segmentation, intrinsics, cam_to_world, poses, t, t + 1)
-        bwd[t + 1] = flow_between(depth, segmentation, intrinsics, cam_to_world, poses, t + 1, t)
+    points = [camera_points(depth[t], intrinsics[t]) for t in range(depth.shape[0])]
+    for t in range(depth.shape[0] - 1):
+        fwd[t] = flow_between(points[t], segmentation[t], intrinsics[t + 1], cam_to_world, poses,
+                              t, t + 1)
+        bwd[t + 1] = flow_between(points[t + 1], segmentation[t + 1], intrinsics[t], cam_to_world,
+                                  poses, t + 1, t)
     return fwd, bwd
 
 
@@ -66,15 +80,23 @@ def allocate_points(counts: np.ndarray, total: int, max_fraction: float) -> np.n
     return alloc
 
 
-def surface_normals(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (H,W,3) of a point map (H,W,3), and whether each is reliable (H,W).
+def surface_normals(depth: np.ndarray, intrinsics: np.ndarray, cam_to_world: np.ndarray,
+                    x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World unit normals (n,3) of the depth map's surface at integer pixels (x, y), and whether
+    each is reliable (n,).
 
-    The normal is the cross product of central differences; it is reliable where the four
-    one-sided normals agree (a smooth surface, not a depth edge), as TAP-Vid-Kubric requires.
+    The normal is the cross product of central differences of unprojected neighbours; it is
+    reliable where the four one-sided normals agree (a smooth surface, not a depth edge), as
+    TAP-Vid-Kubric requires before testing whether a point faces away.
     """
-    pad = np.pad(points, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    right, left = pad[1:-1, 2:] - points, points - pad[1:-1, :-2]
-    down, up = pad[2:, 1:-1] - points, points - pad[:-2, 1:-1]
+    height, width = depth.shape
+    offsets = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])  # centre, right, left, down, up
+    px = np.clip(x[:, None] + offsets[:, 0], 0, width - 1)  # (n,5)
+    py = np.clip(y[:, None] + offsets[:, 1], 0, height - 1)
+    points = geometry.unproject(np.stack([px, py], -1), depth[py, px], intrinsics, cam_to_world)
+    centre = points[:, 0]
+    right, left = points[:, 1] - centre, centre - points[:, 2]
+    down, up = points[:, 3] - centre, centre - points[:, 4]
 
     def unit(v):
         return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
@@ -172,10 +194,9 @@ def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
     normals_q = np.zeros((len(obj), 3))
     reliable = np.zeros(len(obj), dtype=bool)
     for t in np.unique(tq):
-        points = geometry.unproject_depth_map(depth[t], intrinsics[t], cam_to_world[t])
-        normal, ok = surface_normals(points)
         sel = tq == t
-        normals_q[sel], reliable[sel] = normal[yq[sel], xq[sel]], ok[yq[sel], xq[sel]]
+        normals_q[sel], reliable[sel] = surface_normals(depth[t], intrinsics[t], cam_to_world[t],
+                                                        xq[sel], yq[sel])
     rel_rot = poses[obj] @ geometry.invert_pose(poses[obj, tq])[:, None]  # (N,T,4,4)
     normals = geometry.rotate_vectors(rel_rot, normals_q[:, None])  # (N,T,3)
     view = world - cam_to_world[None, :, :3, 3]  # (N,T,3) camera -> point

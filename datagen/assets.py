@@ -195,6 +195,17 @@ class AssetLibrary:
             self._cache[asset_id] = asset
         return self._cache[asset_id]
 
+    def draw(self, rng: np.random.Generator) -> tuple[str, Asset]:
+        """A uniformly random usable asset of the split; raises `UserError` if none is usable."""
+        while True:
+            asset_id = self.object_ids[int(rng.integers(len(self.object_ids)))]
+            asset = self.get(asset_id)
+            if asset is not None:
+                return asset_id, asset
+            if all(self._cache.get(i, 0) is None for i in self.object_ids):
+                raise UserError("no usable mesh among the assets of this split (see the warnings "
+                                "above): add textured OBJ/GLB/GLTF meshes to `assets_dir`")
+
     def background(self, background_id: str, max_width: int = 2048) -> np.ndarray:
         """An equirectangular background as uint8 (h,w,3); HDRIs are tone-mapped."""
         if background_id not in self._images:

@@ -18,6 +18,8 @@ import multiprocessing
 import os
 import time
 from collections import deque
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from itertools import islice
 from pathlib import Path
 from typing import Any, Iterator
@@ -155,7 +157,7 @@ _worker: dict[str, Any] = {}
 
 
 def _init_worker(cfg) -> None:
-    """Pool initializer: only store the config (an exception here would make Pool respawn forever)."""
+    """Worker initializer: store the config; the assets load on the first scene (`_worker_sample`)."""
     _worker["cfg"] = cfg
 
 
@@ -181,7 +183,8 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
     """Encoded samples of scenes `indices`, in that order, from `workers` processes.
 
     Workers are spawned (forking a process that may hold an EGL context is unsafe); at most two
-    scenes per worker wait in memory, so a slow scene never lets results pile up.
+    scenes per worker wait in memory, so a slow scene never lets results pile up. A worker that
+    dies (out of memory, a crash in the GL driver) ends the run with a `UserError`, not a hang.
     """
     from datagen.assets import load_asset_library
 
@@ -191,15 +194,25 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
             yield _make_sample(cfg, index, assets)
         return
     context = multiprocessing.get_context("spawn")
-    with context.Pool(workers, initializer=_init_worker, initargs=(cfg,)) as pool:
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
+                             initargs=(cfg,)) as pool:
         todo = iter(indices)
-        pending = deque(pool.apply_async(_worker_sample, (i,)) for i in islice(todo, 2 * workers))
-        while pending:
-            sample = pending.popleft().get()
-            following = next(todo, None)
-            if following is not None:
-                pending.append(pool.apply_async(_worker_sample, (following,)))
-            yield sample
+        pending = deque(pool.submit(_worker_sample, i) for i in islice(todo, 2 * workers))
+        try:
+            while pending:
+                sample = pending.popleft().result()
+                following = next(todo, None)
+                if following is not None:
+                    pending.append(pool.submit(_worker_sample, following))
+                yield sample
+        except BrokenProcessPool as exc:
+            raise UserError(
+                "a worker process died while generating a scene (out of memory or a crash in the "
+                "GL driver?); run the same command again with fewer --workers to resume"
+            ) from exc
+        finally:
+            for future in pending:
+                future.cancel()  # the pool then only waits for the scenes already running
 
 
 def run(args: argparse.Namespace) -> int:

@@ -159,11 +159,7 @@ def _sample_objects(cfg, rng: np.random.Generator, assets: AssetLibrary) -> list
     num_tossed = int(rng.integers(c.num_tossed[0], c.num_tossed[1] + 1))
     specs = []
     for tossed in [False] * num_static + [True] * num_tossed:
-        while True:  # skip broken assets; the library warns once per asset
-            asset_id = assets.object_ids[int(rng.integers(len(assets.object_ids)))]
-            asset = assets.get(asset_id)
-            if asset is not None:
-                break
+        asset_id, asset = assets.draw(rng)  # skips broken assets, warning once for each
         scale = float(rng.uniform(*c.scale))
         region = np.array(c.tossed_region if tossed else c.static_region, dtype=np.float64)
         specs.append(ObjectSpec(
@@ -185,8 +181,6 @@ def _sample_objects(cfg, rng: np.random.Generator, assets: AssetLibrary) -> list
 
 def sample_scene(cfg, rng: np.random.Generator, assets: AssetLibrary) -> SceneDescription:
     """Draw a whole scene description from the preset `cfg`."""
-    if not assets.object_ids:
-        raise ValueError("the asset library has no objects")
     height, width = (int(v) for v in cfg.resolution)
     objects = _sample_objects(cfg, rng, assets)
     camera = sample_camera(cfg, rng)

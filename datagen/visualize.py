@@ -98,8 +98,9 @@ def colorize_flow(flow: np.ndarray, max_magnitude: float | None = None) -> np.nd
     """Optical flow (...,H,W,2) as (dx, dy) pixels -> RGB uint8 (...,H,W,3) on the standard wheel.
 
     Direction is hue, magnitude is saturation: zero flow is white, flow of `max_magnitude`
-    (default: the largest finite magnitude in the whole array) fully saturated; longer vectors
-    are darkened. Non-finite vectors are black.
+    fully saturated, longer vectors darkened. The default `max_magnitude` is the 99th percentile
+    of the whole array's magnitudes, so one fast object does not wash out the camera's flow.
+    Non-finite vectors are black.
     """
     flow = np.asarray(flow, dtype=np.float32)
     dx, dy = flow[..., 0], flow[..., 1]
@@ -107,7 +108,7 @@ def colorize_flow(flow: np.ndarray, max_magnitude: float | None = None) -> np.nd
     dx, dy = np.where(valid, dx, 0.0), np.where(valid, dy, 0.0)
     magnitude = np.hypot(dx, dy)
     if max_magnitude is None:
-        max_magnitude = float(magnitude.max()) if magnitude.size else 0.0
+        max_magnitude = float(np.percentile(magnitude, 99)) if magnitude.size else 0.0
     radius = magnitude / max(max_magnitude, 1e-6)
 
     n = len(_WHEEL)

@@ -53,20 +53,28 @@ def apply_spatial(clip: dict, matrix: np.ndarray, out_hw: tuple[int, int]) -> di
 
 
 def colour_jitter(rgb: np.ndarray, cfg, rng: np.random.Generator) -> np.ndarray:
-    """Brightness, contrast, saturation and hue jitter with one draw per clip; uint8 in and out."""
-    x = rgb.astype(np.float32)  # (T,H,W,3)
-    x *= rng.uniform(1 - cfg.brightness, 1 + cfg.brightness)
-    mean = x.mean()
-    x = (x - mean) * rng.uniform(1 - cfg.contrast, 1 + cfg.contrast) + mean
-    grey = x @ np.array([0.299, 0.587, 0.114], np.float32)  # (T,H,W)
-    x = (x - grey[..., None]) * rng.uniform(1 - cfg.saturation, 1 + cfg.saturation) + grey[..., None]
-    out = np.clip(x, 0, 255).astype(np.uint8)
-    shift = rng.uniform(-cfg.hue, cfg.hue) * 180.0  # OpenCV hue range is [0, 180)
-    if shift:
-        for t in range(len(out)):
-            hsv = cv2.cvtColor(out[t], cv2.COLOR_RGB2HSV)
-            hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(shift))) % 180).astype(np.uint8)
-            out[t] = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    """Brightness, contrast, saturation and hue jitter with one draw per clip; uint8 in and out.
+
+    Brightness and contrast (around the clip's mean grey level) form one lookup table;
+    saturation blends each frame with its grey image; hue rotates the HSV hue channel.
+    """
+    brightness = rng.uniform(1 - cfg.brightness, 1 + cfg.brightness)
+    contrast = rng.uniform(1 - cfg.contrast, 1 + cfg.contrast)
+    saturation = rng.uniform(1 - cfg.saturation, 1 + cfg.saturation)
+    shift = int(round(rng.uniform(-cfg.hue, cfg.hue) * 180.0))  # OpenCV hue range is [0, 180)
+    mean = float(rgb[::4, ::4, ::4].mean()) * brightness
+    levels = np.arange(256, dtype=np.float32) * brightness
+    lut = np.clip((levels - mean) * contrast + mean, 0, 255).astype(np.uint8)  # (256,)
+    out = np.empty_like(rgb)
+    for t, frame in enumerate(rgb):
+        x = cv2.LUT(frame, lut)
+        grey = cv2.cvtColor(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
+        x = cv2.addWeighted(x, saturation, grey, 1.0 - saturation, 0.0)
+        if shift:
+            hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
+            hsv[..., 0] = cv2.LUT(hsv[..., 0], ((np.arange(256) + shift) % 180).astype(np.uint8))
+            x = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+        out[t] = x
     return out
 
 
@@ -82,16 +90,23 @@ def erase_boxes(clip: dict, cfg, rng: np.random.Generator) -> dict:
     """
     rgb, tracks = clip["rgb"].copy(), clip["tracks"]
     occluded = clip["occluded"].copy()
-    _, h, w, _ = rgb.shape
-    for t in range(1, len(rgb)):
-        for _ in range(rng.integers(1, cfg.eraser_max_boxes + 1)):
-            bw, bh = rng.integers(cfg.eraser_size_px[0], cfg.eraser_size_px[1] + 1, size=2)
-            x0, y0 = int(rng.integers(0, max(w - bw, 0) + 1)), int(rng.integers(0, max(h - bh, 0) + 1))
-            x1, y1 = min(x0 + bw, w), min(y0 + bh, h)
-            rgb[t, y0:y1, x0:x1] = rgb[t, y0:y1, x0:x1].reshape(-1, 3).mean(0).astype(np.uint8)
-            x, y = tracks[t, :, 0], tracks[t, :, 1]  # (N,)
-            occluded[t] |= (x >= x0 - 0.5) & (x < x1 - 0.5) & (y >= y0 - 0.5) & (y < y1 - 0.5)
-    return {**clip, "rgb": rgb, "occluded": occluded}
+    T, h, w, _ = rgb.shape
+    k = cfg.eraser_max_boxes
+    count = rng.integers(1, k + 1, size=T)  # boxes per frame
+    size = rng.integers(cfg.eraser_size_px[0], cfg.eraser_size_px[1] + 1, size=(T, k, 2))
+    x0 = (rng.random((T, k)) * np.maximum(w - size[..., 0] + 1, 1)).astype(int)  # (T,k)
+    y0 = (rng.random((T, k)) * np.maximum(h - size[..., 1] + 1, 1)).astype(int)
+    x1, y1 = np.minimum(x0 + size[..., 0], w), np.minimum(y0 + size[..., 1], h)
+    used = np.arange(k)[None] < count[:, None]  # (T,k)
+    used[0] = False  # the first frame is never erased
+    for t, b in zip(*np.nonzero(used)):
+        box = rgb[t, y0[t, b]:y1[t, b], x0[t, b]:x1[t, b]]
+        box[:] = box.reshape(-1, 3).mean(0).astype(np.uint8)
+    # A point is covered when its pixel (centre at integers) lies in a used box: (T,N,k).
+    x, y = tracks[..., 0:1], tracks[..., 1:2]  # (T,N,1)
+    inside = (x >= x0[:, None] - 0.5) & (x < x1[:, None] - 0.5) \
+        & (y >= y0[:, None] - 0.5) & (y < y1[:, None] - 0.5) & used[:, None]
+    return {**clip, "rgb": rgb, "occluded": occluded | inside.any(axis=-1)}
 
 
 def augment_clip(clip: dict, cfg, out_hw: tuple[int, int], rng: np.random.Generator) -> dict:

@@ -37,7 +37,7 @@ def _to_grid(xy: torch.Tensor, cell: float, h: int, w: int) -> torch.Tensor:
 def sample_neighbourhoods(
     fmap: torch.Tensor, xy: torch.Tensor, cell: float, radius: int
 ) -> torch.Tensor:
-    """Bilinear samples of fmap (B,T,C,h,w) around xy (B,T,N,2) -> (B,T,N,P,C), P=(2r+1)^2.
+    """Bilinear samples of fmap (B,T,C,h,w) around xy (B,T,N,2) -> (B,T,C,N,P), P=(2r+1)^2.
 
     `cell` is the map's stride in input pixels; the offsets are whole cells of this level.
     """
@@ -48,7 +48,7 @@ def sample_neighbourhoods(
     out = F.grid_sample(
         fmap.flatten(0, 1), grid, mode="bilinear", padding_mode="border", align_corners=False
     )  # (B*T,C,N,P)
-    return out.permute(0, 2, 3, 1).reshape(B, T, N, -1, C)
+    return out.unflatten(0, (B, T))  # (B,T,C,N,P), channels first: no copy before the einsum
 
 
 def sample_query_neighbourhoods(
@@ -102,7 +102,7 @@ class CorrelationEncoder(nn.Module):
         """pyramid: per level (B,T,C,h,w); query_feats: per level (B,N,P,C); xy (B,T,N,2) pixels."""
         embs = []
         for i, (fmap, q) in enumerate(zip(pyramid, query_feats)):
-            target = sample_neighbourhoods(fmap, xy, stride * 2**i, self.radius)  # (B,T,N,P,C)
-            corr = torch.einsum("btnpc,bnqc->btnpq", target, q)  # (B,T,N,P,P)
+            target = sample_neighbourhoods(fmap, xy, stride * 2**i, self.radius)  # (B,T,C,N,P)
+            corr = torch.einsum("btcnp,bnqc->btnpq", target, q)  # (B,T,N,P,P)
             embs.append(self.mlp(corr.flatten(-2)))  # (B,T,N,out)
         return torch.cat(embs, dim=-1)  # (B,T,N,levels*out)

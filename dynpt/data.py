@@ -63,15 +63,21 @@ def choose_clip(scene: Scene, num_frames: int, max_stride: int, rng: np.random.G
 
 
 def sample_tracks(clip: dict, num_tracks: int, random_query_fraction: float,
-                  rng: np.random.Generator) -> dict | None:
+                  rng: np.random.Generator, max_offscreen_px: float = np.inf) -> dict | None:
     """Pick `num_tracks` tracks visible somewhere in the clip and a visible query frame for each.
 
     A fraction `random_query_fraction` of them is queried at a uniformly random visible frame,
     the rest at their first visible frame. Tracks are drawn without replacement when there are
-    enough, else with replacement. Returns the model sample, or None if no track is visible.
+    enough, else with replacement. Tracks that go more than `max_offscreen_px` outside the frame
+    (e.g. behind the camera) are not drawn: their positions would dominate the occluded-point
+    loss. Returns the model sample, or None if no track qualifies.
     """
     visible = ~clip["occluded"]  # (T,N)
-    candidates = np.flatnonzero(visible.any(axis=0))
+    h, w = clip["rgb"].shape[1:3]
+    xy = clip["tracks"]  # (T,N,2)
+    outside = np.maximum(np.maximum(-xy, xy - [w - 1, h - 1]), 0).max(axis=(0, 2))  # (N,) px
+    near = np.isfinite(xy).all(axis=(0, 2)) & (outside <= max_offscreen_px)
+    candidates = np.flatnonzero(visible.any(axis=0) & near)
     if candidates.size == 0:
         return None
     chosen = rng.choice(candidates, num_tracks, replace=candidates.size < num_tracks)  # (N',)
@@ -97,7 +103,8 @@ def make_training_sample(scene: Scene, data_cfg, rng: np.random.Generator) -> di
     """Clip, augment and sample tracks from one scene, as configured in `data:`."""
     clip = choose_clip(scene, data_cfg.num_frames, data_cfg.max_stride, rng)
     clip = augment_clip(clip, data_cfg.augment, tuple(data_cfg.crop_size), rng)
-    return sample_tracks(clip, data_cfg.num_tracks, data_cfg.random_query_fraction, rng)
+    return sample_tracks(clip, data_cfg.num_tracks, data_cfg.random_query_fraction, rng,
+                         data_cfg.max_offscreen_px)
 
 
 # --- the stream ---------------------------------------------------------------------------------

@@ -27,6 +27,7 @@ class LossWeights:
     confidence: float = 1.0
     conf_radius_px: float = 12.0
     mobility: float = 1.0
+    mobility_pos_weight: float = 1.0  # BCE weight of moving points (>1 counters few movers)
 
     @classmethod
     def from_config(cls, cfg) -> "LossWeights":
@@ -57,12 +58,13 @@ def track_loss(coords: list[torch.Tensor], gt: torch.Tensor, visible: torch.Tens
     return vis_total / num_iters, occ_total / num_iters
 
 
-def bce_over_iterations(logits: list[torch.Tensor], target: torch.Tensor,
-                        mask: torch.Tensor) -> torch.Tensor:
+def bce_over_iterations(logits: list[torch.Tensor], target: torch.Tensor, mask: torch.Tensor,
+                        pos_weight: float = 1.0) -> torch.Tensor:
     """Masked BCE-with-logits averaged uniformly over the M iterations; logits (B,T,N)."""
     target = target.to(logits[0].dtype)
+    weight = 1.0 + (pos_weight - 1.0) * target  # (B,T,N)
     losses = [
-        _masked_mean(F.binary_cross_entropy_with_logits(lg, target, reduction="none"), mask)
+        _masked_mean(weight * F.binary_cross_entropy_with_logits(lg, target, reduction="none"), mask)
         for lg in logits
     ]
     return torch.stack(losses).mean()
@@ -92,6 +94,6 @@ def dynpt_loss(output, batch: dict, w: LossWeights) -> tuple[torch.Tensor, dict[
             [lg.float() for lg in output.vis_logits], visible, valid),
         "confidence": w.confidence * conf,
         "mobility": w.mobility * bce_over_iterations(
-            [lg.float() for lg in output.moving_logits], moving, valid),
+            [lg.float() for lg in output.moving_logits], moving, valid, w.mobility_pos_weight),
     }
     return torch.stack(list(terms.values())).sum(), terms

@@ -126,6 +126,15 @@ class DynPT(nn.Module):
 
     # -- tracking -----------------------------------------------------------------------------
 
+    def window_starts(self, T: int) -> list[int]:
+        """First frames of the sliding windows for a T-frame video (T < window: one window)."""
+        S, step = self.config["window_len"], self.config["window_stride"]
+        Tp = max(T, S)  # a video shorter than a window is padded with its last frame
+        starts = list(range(0, Tp - S + 1, step))
+        if starts[-1] + S < Tp:
+            starts.append(Tp - S)  # last window aligned with the end of the video
+        return starts
+
     def _tokens(self, coords: torch.Tensor, logits: torch.Tensor, corr: torch.Tensor) -> torch.Tensor:
         """coords (B,S,N,2) pixels, logits (B,S,N,3), corr (B,S,N,Dc) -> tokens (B,N,S,D_in)."""
         zero = torch.zeros_like(coords[:, :1])
@@ -162,17 +171,14 @@ class DynPT(nn.Module):
         B, T, _, H, W = video.shape
         N = queries.shape[1]
         iters = iters or (c["train_iters"] if self.training else c["eval_iters"])
-        S, step = c["window_len"], c["window_stride"]
+        S = c["window_len"]
         t_q = queries[..., 0].round().long()  # (B,N)
         xy_q = queries[..., 1:].float()  # (B,N,2)
         if T < 2 or N < 1 or t_q.min() < 0 or t_q.max() >= T:
             raise ValueError(f"need T >= 2, N >= 1 and query frames in [0, {T - 1}]")
 
         ph, pw = -H % self.size_multiple, -W % self.size_multiple
-        Tp = max(T, S)  # a video shorter than a window is padded with its last frame
-        starts = list(range(0, Tp - S + 1, step))
-        if starts[-1] + S < Tp:
-            starts.append(Tp - S)  # last window aligned with the end of the video
+        starts = self.window_starts(T)
 
         def load_frames(first: int, last: int) -> torch.Tensor:
             """Frames [first, last) in [-1,1], padded: (B*(last-first),3,H+ph,W+pw)."""

@@ -237,6 +237,7 @@ class Trainer:
             for key, value in {"total": loss, **terms}.items():
                 totals[key] = totals.get(key, 0.0) + float(value.detach()) / self.accum
         grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.train.grad_clip)
+        totals["lr"] = self.optimizer.param_groups[0]["lr"]  # the rate this step used
         self.optimizer.step()
         self.scheduler.step()
         self.optimizer.zero_grad(set_to_none=True)
@@ -283,7 +284,7 @@ class Trainer:
         while self.step < stop:
             terms = self.train_step(batches)
             window_clips += tc.total_batch
-            lr = self.scheduler.get_last_lr()[0]
+            lr = terms.pop("lr")
             if self.main:
                 with open(log_path, "a") as f:
                     f.write(json.dumps({"step": self.step, "lr": lr, **terms}) + "\n")

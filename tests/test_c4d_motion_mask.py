@@ -147,3 +147,11 @@ def test_pairwise_ego_flow_from_clean_pointmaps_is_the_static_flow(scene):
     flow = build_flow("gt", scene=scene).flow(scene.rgb, [(1, 4)])[0]
     static = scene.segmentation[1] != MOVING_BOX
     np.testing.assert_allclose(ego[static], flow[static], atol=0.05)
+
+
+def test_max_pair_offset_keeps_only_pairs_of_near_frames(scene, graph):
+    pairs, flows = graph
+    result = correspondence_motion_masks(oracle_tracks(scene), flows, pairs, MotionMaskConfig(max_pair_offset=1))
+    used = [tuple(info["pair"]) for info in result.pair_info]
+    assert used == [p for p in pairs if abs(p[0] - p[1]) == 1] and len(used) < len(pairs)
+    assert mask_iou(result.masks, ground_truth_motion_masks(scene))["iou"] > 0.9

@@ -78,6 +78,7 @@ def test_killed_run_resumes_and_rerun_only_fills_gaps(dataset, tmp_path):
     finally:
         process.kill()  # SIGKILL: no cleanup code runs
         process.wait()
+    assert not (tmp_path / "train-000001.tar").exists(), "the run finished before it was killed"
     for name in shard_files(tmp_path):  # whatever is there under a final name is complete
         if name.endswith(".tar"):
             assert len(list(read_scenes(tmp_path / name))) == 2

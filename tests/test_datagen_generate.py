@@ -181,11 +181,11 @@ def test_movi_f_blur_is_the_mean_of_sub_frame_renders(assets):
     cameras = description.camera.pose_at(times, 8)  # (n,4,4)
     subs = np.stack([renderer.render_rgb(poses[:, i], cameras[i]) for i in range(len(times))])
     np.testing.assert_array_equal(scene.rgb[t], np.round(subs.astype(np.float64).mean(0)))
-    sharp = renderer.render_rgb(sim.poses_at(np.array([t]))[:, 0], scene.cam_to_world[t])
+    at_frame = sim.poses_at(np.array([t]))[:, 0], description.camera.pose_at(np.array(t), 8)
+    sharp = renderer.render_rgb(*at_frame)
     assert np.abs(sharp.astype(int) - scene.rgb[t]).max() > 20  # blur is visible
     # Labels stay sharp, at the frame time.
-    depth, segmentation = renderer.render_labels(sim.poses_at(np.array([t]))[:, 0],
-                                                 scene.cam_to_world[t])
+    depth, segmentation = renderer.render_labels(*at_frame)
     np.testing.assert_array_equal(depth, scene.depth[t])
     np.testing.assert_array_equal(segmentation, scene.segmentation[t])
 

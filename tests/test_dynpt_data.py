@@ -77,3 +77,90 @@ def test_full_augmentation_is_deterministic_by_seed():
     for key in ("rgb", "tracks", "occluded"):
         np.testing.assert_array_equal(a[key], b[key])
     assert a["rgb"].dtype == np.uint8
+
+
+# --- clip and track sampling, the shard stream ---------------------------------------------------
+
+import pytest  # noqa: E402
+
+from c4d.errors import UserError  # noqa: E402
+from dynpt.data import ShardStream, StreamPosition, choose_clip, merge_positions, sample_tracks  # noqa: E402
+from tests.dynpt_testdata import synthetic_scene, synthetic_shards  # noqa: E402
+
+DATA = OmegaConf.create({
+    "num_frames": 6, "max_stride": 2, "crop_size": [32, 32], "num_tracks": 8,
+    "random_query_fraction": 0.5, "shuffle_buffer": 4, "max_offscreen_px": 1000.0,
+    "augment": OmegaConf.merge(CFG, {"scale_range": [1.0, 1.0], "hflip_prob": 0.0, "vflip_prob": 0.0}),
+})
+
+
+def test_sampled_queries_are_visible_first_or_random():
+    rng = np.random.default_rng(0)
+    occluded = rng.random((8, 30)) < 0.6
+    occluded[:, 29] = True  # never visible: never sampled
+    clip = {"rgb": np.zeros((8, 4, 4, 3), np.uint8), "tracks": rng.random((8, 30, 2)),
+            "occluded": occluded, "moving": np.zeros((8, 30), bool)}
+    first = sample_tracks(clip, 20, 0.0, rng)
+    t = first["queries"][:, 0].astype(int)
+    n = np.arange(20)
+    assert first["visible"][t, n].all()
+    assert np.all(t == first["visible"].argmax(axis=0))  # first visible frame
+    np.testing.assert_allclose(first["queries"][:, 1:], first["tracks"][t, n])
+    rand = sample_tracks(clip, 200, 1.0, rng)  # more than available: drawn with replacement
+    t = rand["queries"][:, 0].astype(int)
+    assert rand["visible"][t, np.arange(200)].all()
+    assert np.any(t != rand["visible"].argmax(axis=0))  # some later than the first visible frame
+    none = dict(clip, occluded=np.ones_like(occluded))
+    assert sample_tracks(none, 4, 0.0, rng) is None
+
+
+def test_clip_choice_and_too_short_scenes():
+    scene = synthetic_scene(3, T=10)
+    clip = choose_clip(scene, 6, 2, np.random.default_rng(1))
+    assert clip["rgb"].shape == (6, 32, 32, 3) and clip["tracks"].shape == (6, 20, 2)
+    with pytest.raises(UserError, match="num_frames"):
+        choose_clip(scene, 12, 1, np.random.default_rng(1))
+
+
+def _take(stream, count):
+    it = iter(stream)
+    return [next(it) for _ in range(count)]
+
+
+def test_stream_is_deterministic_and_resumes_exactly():
+    shards = synthetic_shards(12, 3)
+    samples = _take(ShardStream([shards], [1.0], DATA, seed=5), 20)  # > one epoch of 12
+    again = _take(ShardStream([shards], [1.0], DATA, seed=5), 20)
+    scenes = [int(s["video"][0, 0, 0, 0]) for s in samples]
+    assert scenes == [int(s["video"][0, 0, 0, 0]) for s in again]
+    assert sorted(scenes[:12]) == list(range(12))  # one epoch sees every scene once, shuffled
+    assert scenes[:12] != list(range(12))
+    # Resume after sample 13 (mid second epoch) from the position it carries.
+    position = StreamPosition()
+    position.update(torch_rows([s["position"] for s in samples[:13]]))
+    start = merge_positions([position.state_dict()], num_splits=1)
+    resumed = _take(ShardStream([shards], [1.0], DATA, seed=5, start=start), 7)
+    for a, b in zip(resumed, samples[13:]):
+        for key in ("video", "queries", "tracks", "visible", "moving", "position"):
+            np.testing.assert_array_equal(a[key], b[key])
+
+
+def torch_rows(rows):
+    import torch
+
+    return torch.as_tensor(np.stack(rows))
+
+
+def test_ranks_read_disjoint_shards_and_mixing_follows_weights():
+    shards = synthetic_shards(12, 3)
+    seen = [{int(s["video"][0, 0, 0, 0]) for s in _take(
+        ShardStream([shards], [1.0], DATA, seed=0, rank=r, world_size=2), 6)} for r in (0, 1)]
+    assert not seen[0] & seen[1] and len(seen[0] | seen[1]) == 12
+    other = synthetic_shards(6, 3, first=100)
+    only_first = _take(ShardStream([shards, other], [1.0, 0.0], DATA, seed=0), 8)
+    assert all(s["video"][0, 0, 0, 0] < 100 for s in only_first)
+    mixed = _take(ShardStream([shards, other], [1.0, 1.0], DATA, seed=0), 16)
+    from_other = sum(s["video"][0, 0, 0, 0] >= 100 for s in mixed)
+    assert 3 <= from_other <= 13
+    with pytest.raises(UserError, match="weights"):
+        ShardStream([shards], [1.0, 2.0], DATA, seed=0)

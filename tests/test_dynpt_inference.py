@@ -54,7 +54,8 @@ def test_later_queries_are_tracked_both_ways(tracker):
         assert tuple(both.tracks[int(t), n]) == (x, y) and both.visible[int(t), n]
     forward = tracker.track(video, queries, backward=False)
     assert np.isnan(forward.moving[:6, 1]).all() and not forward.visible[:6, 1].any()
-    np.testing.assert_array_equal(forward.tracks[6:], both.tracks[6:])  # forward part unchanged
+    after = np.arange(10)[:, None] >= queries[:, 0]  # (T,N) frames from each query frame on
+    np.testing.assert_array_equal(forward.tracks[after], both.tracks[after])  # forward part unchanged
     assert not np.array_equal(forward.tracks[:6, 1], both.tracks[:6, 1])
 
 
@@ -105,7 +106,8 @@ def test_video_round_trip_and_errors(tmp_path):
     path = write_video(tmp_path / "v.mp4", video, fps=10)
     back = read_video(path)
     assert back.shape == video.shape and back.dtype == np.uint8
-    assert np.abs(back.astype(int) - video).mean() < 8  # lossy codec, same content
+    error = np.abs(back.astype(int) - video).mean()  # lossy codec at a tiny size, same content:
+    assert error < 15 and error < 0.3 * np.abs(back.astype(int) - video[::-1]).mean()
     assert read_video(path, stride=2, max_frames=2).shape == (2, 40, 56, 3)
     folder = tmp_path / "frames"
     folder.mkdir()
@@ -132,8 +134,8 @@ def test_c4d_track_end_to_end(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(out), "--grid-size", "20"]) == 0
     data = np.load(out / "tracks.npz")
-    assert data["tracks"].shape == (6, 18, 2) and data["visible"].dtype == bool
-    assert data["moving"].shape == data["confidence"].shape == (6, 18)
+    assert data["tracks"].shape == (6, 12, 2) and data["visible"].dtype == bool
+    assert data["moving"].shape == data["confidence"].shape == (6, 12)
     overlay = read_video(out / "overlay.mp4")
     assert overlay.shape == (6, 40, 56, 3)
     queries = tmp_path / "q.txt"

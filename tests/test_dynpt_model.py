@@ -163,3 +163,21 @@ def test_encoder_configuration_errors(tmp_path):
     with pytest.raises(UserError, match="not both"):
         build_model(tiny_cfg(f"model.encoder_3d.checkpoint={good}", "model.encoder_3d.random_init=true"))
     assert make_model().encoder_3d is None  # no checkpoint configured: CNN only, no random ViT
+
+
+def test_correlation_samples_the_right_feature_cells():
+    """Input pixel x sits at feature coordinate (x + 0.5) / stride - 0.5 on every pyramid level."""
+    from dynpt.correlation import feature_pyramid, sample_neighbourhoods, sample_query_neighbourhoods
+
+    torch.manual_seed(0)
+    fmap = torch.randn(1, 2, 5, 8, 10)  # (B,T,C,h,w) at stride 4
+    xy = torch.tensor([[[4 * 3 + 1.5, 4 * 2 + 1.5]]]).expand(1, 2, 1, 2)  # cell (x=3, y=2)
+    out = sample_neighbourhoods(fmap, xy, cell=4, radius=1)  # (B,T,C,N,9)
+    assert torch.allclose(out[0, :, :, 0, 4], fmap[0, :, :, 2, 3])  # centre
+    assert torch.allclose(out[0, :, :, 0, 5], fmap[0, :, :, 2, 4])  # one cell right
+    assert torch.allclose(out[0, :, :, 0, 1], fmap[0, :, :, 1, 3])  # one cell up
+    coarse = feature_pyramid(fmap, 2)[1]  # stride 8: cell (1, 1) averages cells x 2..3, y 2..3
+    out = sample_neighbourhoods(coarse, torch.full((1, 2, 1, 2), 8 * 1 + 3.5), cell=8, radius=0)
+    assert torch.allclose(out[0, :, :, 0, 0], fmap[0, :, :, 2:4, 2:4].mean((-1, -2)), atol=1e-6)
+    q = sample_query_neighbourhoods(fmap, torch.tensor([[1]]), xy[:, 0], cell=4, radius=1)  # (B,N,9,C)
+    assert torch.allclose(q[0, 0, 4], fmap[0, 1, :, 2, 3])  # exactly frame 1, no blending in time

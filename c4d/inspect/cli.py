@@ -8,11 +8,10 @@ file) and exits non-zero if anything is wrong.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
 from pathlib import Path
 
+from c4d.config import load_config
 from c4d.errors import UserError
 
 log = logging.getLogger(__name__)
@@ -30,8 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", help="read only shards of this split (train, val, test)")
     parser.add_argument("--scene", type=int, metavar="I",
                         help="detail report of the I-th scene (0-based, in reading order)")
-    parser.add_argument("--num-samples", type=int, default=3, metavar="K",
-                        help="scenes shown with a contact sheet and a video (default 3)")
+    parser.add_argument("--num-samples", type=int, metavar="K",
+                        help="scenes shown with a contact sheet and a video (config key `samples`)")
     parser.add_argument("--check", action="store_true",
                         help="decode and validate every scene (or reconstruction file), list every "
                              "problem with its shard and scene key, exit 1 if there is any")
@@ -42,9 +41,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--video-format", choices=VIDEO_FORMATS, default=".webm",
                         help="container of the videos (.webm plays in browsers; default)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--config", action="append", default=[], metavar="FILE",
+                        help="YAML file merged over configs/inspect/default.yaml (repeatable)")
+    parser.add_argument("overrides", nargs="*", metavar="key=value",
+                        help="config overrides right after SOURCE, e.g. flythrough.static_points=20000")
 
 
-def _run_reconstruction(args) -> int:
+def load_inspect_config(args):
+    """configs/inspect/default.yaml, then --config files, then flags and key=value overrides."""
+    overrides = list(args.overrides)
+    if args.num_samples is not None:
+        if args.num_samples < 0:
+            raise UserError(f"--num-samples must be >= 0, got {args.num_samples}")
+        overrides.append(f"samples={args.num_samples}")
+    return load_config("inspect", "default", args.config, overrides)
+
+
+def _run_reconstruction(args, cfg) -> int:
     from c4d.inspect import recon_report
 
     if args.check and args.out is None:
@@ -60,7 +73,7 @@ def _run_reconstruction(args) -> int:
         from c4d_pipeline.cli_eval_recon import pick_scene
 
         gt = pick_scene(args.gt, args.scene_index)
-    summary = recon_report.build_recon_report(args.source, args.out, gt, args.gt or "",
+    summary = recon_report.build_recon_report(args.source, args.out, cfg, gt, args.gt or "",
                                               video_ext=args.video_format)
     for problem in summary["problems"]:
         log.warning("%s: %s", args.source, problem)
@@ -68,44 +81,43 @@ def _run_reconstruction(args) -> int:
     return 1 if args.check and summary["problems"] else 0
 
 
-def _run_check(args) -> int:
+def _run_check(args, cfg) -> int:
     from c4d.inspect.dataset_report import check_dataset
 
-    result = check_dataset(args.source, args.split, progress=not args.no_progress)
+    result = check_dataset(args.source, cfg, args.split, progress=not args.no_progress)
     for shard, key, problem in result.problems:
         print(f"{shard} {key}: {problem}")
     print(f"checked {result.num_samples} scenes: {result.num_bad_samples} with problems "
           f"({len(result.problems)} problems)")
     if args.out is not None:
+        from datagen.shards import write_json_atomic
+
         args.out.mkdir(parents=True, exist_ok=True)
-        report = {"source": args.source, "scenes": result.num_samples,
-                  "problems": [{"shard": s, "key": k, "problem": p} for s, k, p in result.problems]}
-        tmp = args.out / f".check.json.{os.getpid()}"
-        tmp.write_text(json.dumps(report, indent=2) + "\n")
-        os.replace(tmp, args.out / "check.json")
+        write_json_atomic(args.out / "check.json", {
+            "source": args.source, "scenes": result.num_samples,
+            "problems": [{"shard": s, "key": k, "problem": p} for s, k, p in result.problems]})
     return 1 if result.problems else 0
 
 
 def run(args) -> int:
     from c4d.inspect.recon_report import is_reconstruction
 
-    if args.num_samples < 0:
-        raise UserError(f"--num-samples must be >= 0, got {args.num_samples}")
+    cfg = load_inspect_config(args)
     if is_reconstruction(args.source):
-        return _run_reconstruction(args)
+        return _run_reconstruction(args, cfg)
     if args.check:
-        return _run_check(args)
+        return _run_check(args, cfg)
     if args.out is None:
         raise UserError("--out DIR is required to write a report (or use --check alone)")
     from c4d.inspect import dataset_report
 
     if args.scene is not None:
-        page = dataset_report.build_scene_report(args.source, args.out, args.scene, args.split,
+        page = dataset_report.build_scene_report(args.source, args.out, args.scene, cfg, args.split,
                                                  video_ext=args.video_format)
         log.info("scene report written to %s", page)
         return 0
     summary = dataset_report.build_dataset_report(
-        args.source, args.out, args.num_samples, args.split, video_ext=args.video_format,
+        args.source, args.out, cfg, args.split, video_ext=args.video_format,
         progress=not args.no_progress)
     counts = summary["counts"]
     log.info("%d scenes, %d frames, %d objects, %d tracks; report written to %s",

@@ -3,7 +3,7 @@
 Three jobs, each streaming scene by scene (memory stays at one scene):
 - `build_dataset_report`: counts and distributions (objects per scene, visible and moving
   fractions, camera speed, blur, track lengths) as plots, plus a contact sheet and a video of the
-  first `num_samples` scenes showing RGB with tracks | depth | segmentation | flow, tied together
+  first `samples` scenes (config key) showing RGB with tracks | depth | segmentation | flow, tied together
   by `index.html`.
 - `build_scene_report`: one scene in detail (every frame, object table, per-track curves).
 - `check_dataset`: decode every sample and list every problem (corrupt member, truncated shard,
@@ -14,7 +14,6 @@ Three jobs, each streaming scene by scene (memory stays at one scene):
 from __future__ import annotations
 
 import json
-import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,14 +25,6 @@ from c4d.errors import UserError
 from c4d.inspect import html, plots
 from datagen import shards, visualize
 from datagen.scene import Scene
-
-log = logging.getLogger(__name__)
-
-DEFAULT_MOBILITY_THRESHOLD = 0.01  # the contract's default, used when meta does not say
-MIN_PANEL_HEIGHT = 192  # small scenes are scaled up (nearest) so pictures stay legible
-SHEET_FRAMES = 4  # frames per scene in a contact sheet
-ROTATION_TOLERANCE = 1e-3  # |R^T R - I| of a camera pose
-
 
 # --------------------------------------------------------------------------------------------
 # Reading
@@ -50,23 +41,25 @@ class Sample:
     error: str | None = None
 
 
-def iter_dataset(source, split: str | None = None, skip_errors: bool = True) -> Iterator[Sample]:
+def iter_dataset(source, split: str | None = None, fields=None, full_first: int = 0) -> Iterator[Sample]:
     """Every sample of `source` (anything `datagen.read_scenes` accepts), in reading order.
 
-    A corrupt sample or a truncated shard yields a `Sample` with `error` set and reading goes on
-    with the next sample or shard; with `skip_errors=False` such samples are not yielded at all.
+    `fields`: decode only these Scene fields (default all), except for the first `full_first`
+    samples, which are decoded in full. A corrupt sample or a truncated shard yields a `Sample`
+    with `error` set, and reading goes on with the next sample or shard.
     """
+    count = 0
     for shard in shards.list_shards(source, split):
         try:
             for raw in shards.iter_samples(shard):
+                wanted = None if count < full_first else fields
+                count += 1
                 try:
-                    yield Sample(str(shard), raw["__key__"], shards.decode_scene(raw))
+                    yield Sample(str(shard), raw["__key__"], shards.decode_scene(raw, wanted))
                 except UserError as exc:
-                    if skip_errors:
-                        yield Sample(str(shard), raw["__key__"], None, str(exc))
+                    yield Sample(str(shard), raw["__key__"], None, str(exc))
         except UserError as exc:  # the tar itself is truncated or corrupt
-            if skip_errors:
-                yield Sample(str(shard), "?", None, str(exc))
+            yield Sample(str(shard), "?", None, str(exc))
 
 
 # --------------------------------------------------------------------------------------------
@@ -104,13 +97,18 @@ def _expected_layout(scene: Scene) -> dict[str, tuple[np.dtype, tuple[int, ...]]
     return layout
 
 
-def validate_scene(scene: Scene) -> list[str]:
-    """Every way `scene` breaks the contract (INTERFACES.md), as short sentences; [] if none."""
+def validate_scene(scene: Scene, cfg) -> list[str]:
+    """Every way `scene` breaks the contract (INTERFACES.md), as short sentences; [] if none.
+
+    `cfg`: the inspect config (`configs/inspect/default.yaml`), for its `check` tolerances.
+    """
     required = ("rgb", "intrinsics", "cam_to_world", "objects", "tracks", "occluded",
                 "query_frame", "track_object")
+    if isinstance(scene.meta, dict) and scene.meta.get("generator") == "datagen":
+        required = tuple(Scene.field_names())  # every datagen preset produces every field
     missing = [name for name in required if getattr(scene, name) is None]
     if missing:
-        return [f"required fields are missing: {', '.join(missing)}"]
+        return [f"required fields are missing (truncated sample?): {', '.join(missing)}"]
     if not isinstance(scene.rgb, np.ndarray) or scene.rgb.ndim != 4:
         return [f"rgb must be (T,H,W,3), got {getattr(scene.rgb, 'shape', type(scene.rgb))}"]
 
@@ -145,7 +143,7 @@ def validate_scene(scene: Scene) -> list[str]:
     if "cam_to_world" in ok and np.isfinite(scene.cam_to_world).all():
         rot = scene.cam_to_world[:, :3, :3].astype(np.float64)
         error = np.abs(np.swapaxes(rot, 1, 2) @ rot - np.eye(3)).max()
-        if error > ROTATION_TOLERANCE or np.abs(scene.cam_to_world[:, 3] - [0, 0, 0, 1]).max() > 0:
+        if error > cfg.check.rotation_tolerance or np.abs(scene.cam_to_world[:, 3] - [0, 0, 0, 1]).max() > 0:
             problems.append(f"cam_to_world is not rigid (|R^T R - I| = {error:.2g})")
     if "intrinsics" in ok and (scene.intrinsics[:, [0, 1], [0, 1]] <= 0).any():
         problems.append("intrinsics have a focal length <= 0")
@@ -156,13 +154,14 @@ def validate_scene(scene: Scene) -> list[str]:
     if {"query_frame", "occluded"} <= ok and scene.num_tracks:
         queries = scene.query_frame
         if queries.min() < 0 or queries.max() >= num_frames:
-            problems.append(f"query_frame spans [{queries.min()}, {queries.max()}], outside [0, {num_frames - 1}]")
+            problems.append(f"query_frame spans [{queries.min()}, {queries.max()}], "
+                            f"outside [0, {num_frames - 1}]")
         else:
             hidden = int(scene.occluded[np.arange(scene.num_tracks), queries].sum())
             if hidden:
                 problems.append(f"{hidden} tracks are occluded at their query frame")
     if {"moving", "displacement"} <= ok:
-        threshold = float(scene.meta.get("mobility_threshold", DEFAULT_MOBILITY_THRESHOLD))
+        threshold = float(scene.meta.get("mobility_threshold", cfg.check.mobility_threshold))
         disagree = int((scene.moving != (scene.displacement > threshold)).sum())
         if disagree:
             problems.append(f"moving disagrees with displacement > {threshold} at {disagree} points")
@@ -183,7 +182,7 @@ class CheckResult:
         return len({(shard, key) for shard, key, _ in self.problems})
 
 
-def check_dataset(source, split: str | None = None, progress: bool = True) -> CheckResult:
+def check_dataset(source, cfg, split: str | None = None, progress: bool = True) -> CheckResult:
     """Decode and validate every sample of `source`; never stops at the first problem."""
     problems: list[tuple[str, str, str]] = []
     count = 0
@@ -192,7 +191,7 @@ def check_dataset(source, split: str | None = None, progress: bool = True) -> Ch
         if sample.error is not None:
             problems.append((sample.shard, sample.key, sample.error))
             continue
-        problems += [(sample.shard, sample.key, p) for p in validate_scene(sample.scene)]
+        problems += [(sample.shard, sample.key, p) for p in validate_scene(sample.scene, cfg)]
     return CheckResult(count, problems)
 
 
@@ -201,6 +200,7 @@ def check_dataset(source, split: str | None = None, progress: bool = True) -> Ch
 # --------------------------------------------------------------------------------------------
 
 # Statistic names -> (what one value is, unit) for plots and the summary.
+STATISTICS_FIELDS = ("objects", "tracks", "occluded", "moving", "cam_to_world", "intrinsics", "meta")
 STATISTICS = {
     "objects_per_scene": ("objects per scene", "count"),
     "tracks_per_scene": ("tracks per scene", "count"),
@@ -214,14 +214,9 @@ STATISTICS = {
 
 
 def blur_strength(meta: dict) -> float | None:
-    """Shutter time in frames from a scene's meta (0 = sharp), or None when not recorded."""
-    for key in ("shutter", "shutter_frames", "motion_blur"):
-        value = meta.get(key)
-        if isinstance(value, dict):
-            value = value.get("shutter")
-        if isinstance(value, (int, float)):
-            return float(value)
-    return None
+    """Shutter time in frames recorded by datagen (`meta['motion_blur']`, 0 = sharp), or None."""
+    value = meta.get("motion_blur")
+    return float(value) if isinstance(value, (int, float)) else None
 
 
 def scene_statistics(scene: Scene) -> dict[str, np.ndarray]:
@@ -257,18 +252,18 @@ def summarise(values: np.ndarray) -> dict[str, float]:
 # --------------------------------------------------------------------------------------------
 
 
-def scene_panels(scene: Scene, show_occluded: bool = True) -> tuple[list[np.ndarray], list[str]]:
+def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
     """RGB with tracks, depth, segmentation, forward flow as RGB uint8 videos (T,H',W',3).
 
     Small scenes are scaled up by an integer factor so the pictures stay legible; tracks are
     moved to the scaled pixel grid (centres at integers: x' = (x + 0.5) f - 0.5).
     """
-    factor = visualize.display_scale(scene.rgb.shape[1], MIN_PANEL_HEIGHT)
+    factor = visualize.display_scale(scene.rgb.shape[1], cfg.min_panel_height)
     tracks = (scene.tracks.transpose(1, 0, 2) + 0.5) * factor - 0.5  # (T,N,2)
     moving = None if scene.moving is None else scene.moving.T  # (T,N)
-    radius = max(1.5, 0.007 * factor * max(scene.image_size))
+    radius = max(1.5, cfg.track_radius * factor * max(scene.image_size))
     panels = [visualize.draw_tracks(visualize.upscale(scene.rgb, factor), tracks, ~scene.occluded.T, moving,
-                                    show_occluded=show_occluded, radius=radius, legend=moving is not None)]
+                                    radius=radius, legend=moving is not None)]
     labels = ["rgb + tracks"]
     for name, colorize in (("depth", visualize.colorize_depth),
                            ("segmentation", visualize.colorize_segmentation),
@@ -280,15 +275,15 @@ def scene_panels(scene: Scene, show_occluded: bool = True) -> tuple[list[np.ndar
     return panels, labels
 
 
-def scene_video(scene: Scene) -> np.ndarray:
+def scene_video(scene: Scene, cfg) -> np.ndarray:
     """All panels side by side: RGB uint8 (T,H',W',3)."""
-    panels, labels = scene_panels(scene)
+    panels, labels = scene_panels(scene, cfg)
     return visualize.side_by_side(panels, labels)
 
 
-def scene_contact_sheet(scene: Scene, num_frames: int = SHEET_FRAMES) -> np.ndarray:
+def scene_contact_sheet(scene: Scene, cfg, num_frames: int) -> np.ndarray:
     """`num_frames` evenly spaced frames (rows) of all panels (columns): one RGB uint8 image."""
-    panels, labels = scene_panels(scene)
+    panels, labels = scene_panels(scene, cfg)
     times = np.unique(np.linspace(0, scene.num_frames - 1, num_frames).round().astype(int))
     rows = [visualize.side_by_side([p[t] for p in panels], [f"{labels[0]} t={t}"] + labels[1:])
             for t in times]
@@ -300,16 +295,17 @@ def scene_contact_sheet(scene: Scene, num_frames: int = SHEET_FRAMES) -> np.ndar
 # --------------------------------------------------------------------------------------------
 
 
-def _write_scene_pictures(scene: Scene, folder: Path, video_ext: str) -> tuple[Path, Path]:
-    fps = float(scene.meta.get("fps", 12))
-    sheet = visualize.write_image(folder / "sheet.png", scene_contact_sheet(scene))
-    video = visualize.write_video(folder / f"video{video_ext}", scene_video(scene), fps)
+def _write_scene_pictures(scene: Scene, folder: Path, cfg, video_ext: str) -> tuple[Path, Path]:
+    fps = float(scene.meta.get("fps", cfg.fps))
+    sheet = visualize.write_image(folder / "sheet.png", scene_contact_sheet(scene, cfg, cfg.sheet_frames))
+    video = visualize.write_video(folder / f"video{video_ext}", scene_video(scene, cfg), fps)
     return sheet, video
 
 
-def build_dataset_report(source, out: str | Path, num_samples: int = 3, split: str | None = None,
+def build_dataset_report(source, out: str | Path, cfg, split: str | None = None,
                          video_ext: str = ".webm", progress: bool = True) -> dict:
-    """Write statistics, plots, sample pictures and `index.html` of a shard set into `out`.
+    """Write statistics, plots, pictures of the first `cfg.samples` scenes and `index.html` of a
+    shard set into `out`.
 
     Returns the summary (also written to `out/summary.json`). Unreadable samples are skipped,
     counted and listed; `check_dataset` explains them in full.
@@ -320,23 +316,25 @@ def build_dataset_report(source, out: str | Path, num_samples: int = 3, split: s
     counts = {"scenes": 0, "frames": 0, "objects": 0, "tracks": 0, "unreadable": 0}
     presets: dict[str, int] = {}
     samples, unreadable = [], []
-    for sample in tqdm(iter_dataset(source, split), desc="inspect", unit="scene", disable=not progress):
+    num_samples = cfg.samples
+    scenes = iter_dataset(source, split, fields=STATISTICS_FIELDS, full_first=num_samples)
+    for sample in tqdm(scenes, desc="inspect", unit="scene", disable=not progress):
         if sample.scene is None:
             counts["unreadable"] += 1
             unreadable.append((sample.shard, sample.key, sample.error))
             continue
         scene = sample.scene
         counts["scenes"] += 1
-        counts["frames"] += scene.num_frames
+        counts["frames"] += len(scene.cam_to_world)  # rgb is only decoded for the samples
         counts["objects"] += len(scene.objects)
         counts["tracks"] += scene.num_tracks
         preset = str(scene.meta.get("preset", "?"))
         presets[preset] = presets.get(preset, 0) + 1
         for name, value in scene_statistics(scene).items():
             values[name].append(np.asarray(value, np.float64))
-        if len(samples) < num_samples:
+        if len(samples) < num_samples and scene.rgb is not None:  # decoded in full
             folder = out / "scenes" / sample.key
-            sheet, video = _write_scene_pictures(scene, folder, video_ext)
+            sheet, video = _write_scene_pictures(scene, folder, cfg, video_ext)
             samples.append({"key": sample.key, "shard": sample.shard, "sheet": sheet, "video": video,
                             "frames": scene.num_frames, "size": scene.image_size,
                             "objects": len(scene.objects), "tracks": scene.num_tracks})
@@ -386,7 +384,7 @@ def _write_dataset_page(out: Path, summary: dict, plot_path: Path, samples: list
     ]
     for s in samples:
         fragments += [
-            f"<h3>{s['key']}</h3>",
+            html.heading(s["key"], level=3),
             html.text(f"{s['shard']}: {s['frames']} frames of {s['size'][0]}x{s['size'][1]}, "
                       f"{s['objects']} objects, {s['tracks']} tracks", "note"),
             html.video(s["video"], out),
@@ -395,7 +393,7 @@ def _write_dataset_page(out: Path, summary: dict, plot_path: Path, samples: list
     return html.write_page(out / "index.html", "Dataset report", fragments)
 
 
-def build_scene_report(source, out: str | Path, index: int, split: str | None = None,
+def build_scene_report(source, out: str | Path, index: int, cfg, split: str | None = None,
                        video_ext: str = ".webm") -> Path:
     """Detail page of the `index`-th scene of `source` (reading order): every frame, objects,
     per-track curves and its validation. Returns the path of the page."""
@@ -412,11 +410,11 @@ def build_scene_report(source, out: str | Path, index: int, split: str | None = 
         raise UserError(f"scene {index} ({sample.key} in {sample.shard}) cannot be read: {sample.error}")
     scene = sample.scene
     out = Path(out)
-    sheet, video = _write_scene_pictures(scene, out, video_ext)
+    sheet, video = _write_scene_pictures(scene, out, cfg, video_ext)
     all_frames = visualize.write_image(out / "all_frames.png",
-                                       scene_contact_sheet(scene, num_frames=scene.num_frames))
-    curves = plots.track_curves(out / "tracks.png", scene)
-    problems = validate_scene(scene)
+                                       scene_contact_sheet(scene, cfg, scene.num_frames))
+    curves = plots.track_curves(out / "tracks.png", scene, cfg.track_curves)
+    problems = validate_scene(scene, cfg)
     stats = {name: summarise(np.asarray(v, np.float64)) for name, v in scene_statistics(scene).items()}
 
     fragments = [

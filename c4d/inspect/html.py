@@ -27,8 +27,8 @@ def text(value: object, css_class: str | None = None) -> str:
     return f"<p{attr}>{html.escape(str(value))}</p>"
 
 
-def heading(value: str) -> str:
-    return f"<h2>{html.escape(value)}</h2>"
+def heading(value: str, level: int = 2) -> str:
+    return f"<h{level}>{html.escape(value)}</h{level}>"
 
 
 def table(rows: Iterable[Sequence[object]], header: Sequence[str] | None = None) -> str:

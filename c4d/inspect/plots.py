@@ -40,7 +40,8 @@ def histogram_grid(path: str | os.PathLike, series: dict[str, tuple[np.ndarray, 
         if values.size == 0:
             ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes)
             continue
-        integer = unit in ("count", "frames") and np.allclose(values, np.round(values)) and np.ptp(values) < 60
+        whole = np.allclose(values, np.round(values)) and np.ptp(values) < 60
+        integer = unit in ("count", "frames") and whole  # one bar per value
         bins = np.arange(values.min() - 0.5, values.max() + 1.5) if integer else 20
         ax.hist(values, bins=bins, color="#4477aa", edgecolor="white")
         ax.axvline(values.mean(), color="#cc3311", linewidth=1, label=f"mean {values.mean():.3g}")
@@ -53,7 +54,7 @@ def histogram_grid(path: str | os.PathLike, series: dict[str, tuple[np.ndarray, 
     return _save(fig, path)
 
 
-def track_curves(path: str | os.PathLike, scene: Scene, max_tracks: int = 64) -> Path:
+def track_curves(path: str | os.PathLike, scene: Scene, max_tracks: int) -> Path:
     """A scene's tracks over time: per-frame displacement coloured by mobility, visibility, moving
     fraction per frame. At most `max_tracks` evenly chosen tracks are drawn."""
     t = np.arange(scene.num_frames)

@@ -70,7 +70,7 @@ def orbit_path(
     start_eye: np.ndarray,
     up: np.ndarray,
     num_views: int,
-    sweep_deg: float = 60.0,
+    sweep_deg: float,
 ) -> np.ndarray:
     """Camera-to-world poses (V,4,4) swinging from `start_eye` around `center` about the `up` axis.
 

@@ -11,7 +11,6 @@ camera, rendered by `point_render`), `ply.png` (scene.ply read back with trimesh
 from __future__ import annotations
 
 import json
-import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,17 +20,13 @@ import trimesh
 
 from c4d.errors import UserError
 from c4d.inspect import html, plots, point_render
-from c4d_pipeline.cli_eval_recon import read_reconstruction, read_tum_poses, scene_frame_indices
+from c4d_pipeline.cli_eval_recon import read_reconstruction, scene_frame_indices
 from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
+from c4d_pipeline.outputs import read_tum
 from datagen import geometry, visualize
-
-log = logging.getLogger(__name__)
+from datagen.shards import write_json_atomic
 
 MARKER_FILES = ("poses_tum.txt", "pointmaps.npz", "report.json")  # any one marks a reconstruction
-STATIC_POINTS = 80_000  # background points in the fly-through (random subset, fixed seed)
-DYNAMIC_POINTS = 6_000  # moving points per frame in the fly-through
-KEEP_CONFIDENT = 0.8  # the fly-through drops the 20 % least confident points of every frame
-MIN_RENDER_HEIGHT = 256
 CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
 
 
@@ -101,7 +96,12 @@ def _load(recon: Reconstruction, name: str, loader) -> None:
 
 
 def load_reconstruction(path: str | Path) -> Reconstruction:
-    """Read every part of a `c4d run` directory that is present and readable."""
+    """Read every part of a `c4d run` directory that is present and readable.
+
+    Unlike `c4d_pipeline.outputs.read_reconstruction`, which needs a complete directory, this
+    reads part by part, so a missing or broken part becomes a listed problem, and it opens
+    scene.ply with trimesh as an independent check that other tools can read it.
+    """
     path = Path(path)
     if not path.is_dir():
         raise UserError(f"reconstruction directory {path} does not exist; pass the --out of `c4d run`")
@@ -131,7 +131,7 @@ def load_reconstruction(path: str | Path) -> Reconstruction:
     def poses():
         if not (path / "poses_tum.txt").is_file():
             raise FileNotFoundError
-        recon.cam_to_world = read_tum_poses(path / "poses_tum.txt")[1]
+        recon.cam_to_world = read_tum(path / "poses_tum.txt")
 
     def intrinsics():
         recon.intrinsics = np.load(path / "intrinsics.npy")
@@ -214,18 +214,19 @@ def consistency_problems(recon: Reconstruction) -> list[str]:
 # --------------------------------------------------------------------------------------------
 
 
-def overview_video(recon: Reconstruction) -> np.ndarray | None:
+def overview_video(recon: Reconstruction, cfg) -> np.ndarray | None:
     """Frames with tracks | depth | motion mask over the frames: RGB uint8 (T,H',W',3)."""
     if recon.frames is None:
         return None
-    factor = visualize.display_scale(recon.frames.shape[1], MIN_RENDER_HEIGHT)
+    factor = visualize.display_scale(recon.frames.shape[1], cfg.min_panel_height)
     frames = visualize.upscale(recon.frames, factor)
     panels, labels = [frames], ["frames"]
     tracks = recon.tracks_2d
     if tracks is not None and {"tracks", "visible"} <= set(tracks) and len(tracks["tracks"]) == len(frames):
         scaled = (tracks["tracks"] + 0.5) * factor - 0.5  # (T,N,2) on the upscaled grid
         panels[0] = visualize.draw_tracks(frames, scaled, tracks["visible"], tracks.get("moving"),
-                                          radius=max(1.5, 0.007 * frames.shape[1]), legend=True)
+                                          radius=max(1.5, cfg.track_radius * max(frames.shape[1:3])),
+                                          legend=True)
         labels[0] = "frames + tracks"
     if recon.depth is not None and recon.depth.shape[:3] == recon.frames.shape[:3]:
         panels.append(visualize.upscale(visualize.colorize_depth(recon.depth), factor))
@@ -241,11 +242,27 @@ def _subsample(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
     return np.sort(rng.choice(count, limit, replace=False)) if count > limit else np.arange(count)
 
 
-def flythrough_frames(recon: Reconstruction, seed: int = 0) -> np.ndarray | None:
+def _viewpoint(cam_to_world: np.ndarray, center: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """A virtual camera (4,4) a little behind and above the first camera, looking at `center`,
+    and the scene's up direction (3,): the mean of the cameras' up axes (OpenCV y is down)."""
+    up = -cam_to_world[:, :3, 1].mean(axis=0)
+    up /= np.linalg.norm(up)
+    back = cam_to_world[0, :3, 3] - center
+    eye = center + cfg.view_back * back + cfg.view_up * np.linalg.norm(back) * up
+    return geometry.look_at(eye, center, up), up
+
+
+def _virtual_intrinsics(height: int, width: int, cfg) -> np.ndarray:
+    focal = cfg.focal * width
+    return np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
+
+
+def flythrough_frames(recon: Reconstruction, cfg) -> np.ndarray | None:
     """The 4D point cloud from an orbiting virtual camera while time runs: uint8 (V,H,W,3).
 
     Static background (pixels outside the motion mask, all frames, subsampled once) plus the
-    moving points of the current frame; camera centres are drawn as dark dots.
+    moving points of the current frame; camera centres are drawn as dark dots. `cfg`: the
+    `flythrough` section of the inspect config.
     """
     if recon.points is None or recon.cam_to_world is None:
         return None
@@ -256,59 +273,51 @@ def flythrough_frames(recon: Reconstruction, seed: int = 0) -> np.ndarray | None
                else np.zeros(recon.points.shape[:3], bool))
     confidence = recon.confidence if recon.confidence is not None else np.ones(recon.points.shape[:3])
     finite = np.isfinite(recon.points).all(-1) & np.isfinite(confidence)
-    threshold = np.quantile(confidence[finite], 1.0 - KEEP_CONFIDENT) if finite.any() else 0.0
+    threshold = np.quantile(confidence[finite], 1.0 - cfg.keep_confident) if finite.any() else 0.0
     good = finite & (confidence >= threshold)  # (T,H,W)
 
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(cfg.seed)
     static = good & ~dynamic
-    pick = _subsample(rng, int(static.sum()), STATIC_POINTS)
+    pick = _subsample(rng, int(static.sum()), cfg.static_points)
     static_points, static_colors = recon.points[static][pick], colors[static][pick]
     centers = recon.cam_to_world[:, :3, 3]  # (T,3)
     scene_points = static_points if len(static_points) else recon.points[good]
     if len(scene_points) == 0:
         return None
     center = np.median(scene_points, axis=0)
+    start, up = _viewpoint(recon.cam_to_world, center, cfg)
+    num_views = max(cfg.views_per_frame * num_frames, cfg.min_views)
+    poses = point_render.orbit_path(center, start[:3, 3], up, num_views, cfg.sweep_deg)
 
-    up = -recon.cam_to_world[:, :3, 1].mean(axis=0)  # camera y points down in the image
-    up /= np.linalg.norm(up)
-    back = centers[0] - center
-    distance = np.linalg.norm(back) + 1e-9
-    start_eye = center + 1.6 * back + 0.5 * distance * up  # behind and above the first camera
-    num_views = max(2 * num_frames, 48)
-    poses = point_render.orbit_path(center, start_eye, up, num_views)
-
-    out_h = max(MIN_RENDER_HEIGHT, height)
+    out_h = max(cfg.min_height, height)
     out_w = int(round(out_h * width / height))
-    focal = 0.9 * out_w
-    intrinsics = np.array([[focal, 0, (out_w - 1) / 2], [0, focal, (out_h - 1) / 2], [0, 0, 1]])
+    intrinsics = _virtual_intrinsics(out_h, out_w, cfg)
     views = []
     for v, pose in enumerate(poses):
         t = min(num_frames - 1, v * num_frames // num_views)
         moving = good[t] & dynamic[t]
-        pick_t = _subsample(rng, int(moving.sum()), DYNAMIC_POINTS)
+        pick_t = _subsample(rng, int(moving.sum()), cfg.dynamic_points)
         points = np.concatenate([static_points, recon.points[t][moving][pick_t], centers])
         point_colors = np.concatenate([static_colors, colors[t][moving][pick_t],
                                        np.tile(CAMERA_COLOR, (num_frames, 1))]).astype(np.uint8)
-        image = point_render.render_points(points, point_colors, intrinsics, pose, (out_h, out_w))
+        image = point_render.render_points(points, point_colors, intrinsics, pose, (out_h, out_w),
+                                           cfg.splat_radius)
         views.append(visualize.label_image(image, f"frame {t}"))
     return np.stack(views)
 
 
-def ply_picture(recon: Reconstruction) -> np.ndarray | None:
+def ply_picture(recon: Reconstruction, cfg) -> np.ndarray | None:
     """scene.ply as read back by trimesh, from behind and above the first camera: (H,W,3) uint8."""
     if recon.ply_points is None or recon.cam_to_world is None:
         return None
-    center = np.median(recon.ply_points, axis=0)
-    up = -recon.cam_to_world[:, :3, 1].mean(axis=0)
-    up /= np.linalg.norm(up)
-    back = recon.cam_to_world[0, :3, 3] - center
-    pose = geometry.look_at(center + 1.6 * back + 0.5 * np.linalg.norm(back) * up, center, up)
-    size = MIN_RENDER_HEIGHT * 3 // 2
-    intrinsics = np.array([[0.9 * size, 0, (size - 1) / 2], [0, 0.9 * size, (size - 1) / 2], [0, 0, 1]])
-    return point_render.render_points(recon.ply_points, recon.ply_colors, intrinsics, pose, (size, size))
+    pose, _ = _viewpoint(recon.cam_to_world, np.median(recon.ply_points, axis=0), cfg)
+    size = cfg.min_height * 3 // 2
+    return point_render.render_points(recon.ply_points, recon.ply_colors,
+                                      _virtual_intrinsics(size, size, cfg), pose, (size, size),
+                                      cfg.splat_radius)
 
 
-def ground_truth_trajectory(recon: Reconstruction, scene) -> tuple[np.ndarray, dict]:
+def ground_truth_trajectory(recon: Reconstruction, scene) -> tuple[np.ndarray, np.ndarray, dict]:
     """The estimated poses Sim(3)-aligned onto the ground truth of the frames that were
     reconstructed (chosen as `c4d eval-recon` chooses them), the ground-truth poses, and the
     pose metrics: ((T,4,4), (T,4,4), {ate, rpe_trans, rpe_rot, sim3_scale})."""
@@ -323,10 +332,11 @@ def ground_truth_trajectory(recon: Reconstruction, scene) -> tuple[np.ndarray, d
 # --------------------------------------------------------------------------------------------
 
 
-def build_recon_report(path: str | Path, out: str | Path, gt_scene=None, gt_name: str = "",
-                       video_ext: str = ".webm", fps: float = 12.0) -> dict:
+def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt_name: str = "",
+                       video_ext: str = ".webm") -> dict:
     """Write the pictures, videos, `summary.json` and `index.html` of a reconstruction into `out`.
 
+    `cfg`: the inspect config (`configs/inspect/default.yaml`).
     `gt_scene`: an optional `datagen.Scene` with the ground truth of the same video; its camera
     trajectory is drawn with the estimate aligned onto it. Returns the summary.
     """
@@ -334,7 +344,8 @@ def build_recon_report(path: str | Path, out: str | Path, gt_scene=None, gt_name
     out.mkdir(parents=True, exist_ok=True)
     recon = load_reconstruction(path)
     written: dict[str, Path] = {}
-    overview = overview_video(recon)
+    fps = cfg.fps
+    overview = overview_video(recon, cfg)
     if overview is not None:
         written["overview"] = visualize.write_video(out / f"overview{video_ext}", overview, fps)
     if recon.depth is not None:
@@ -355,11 +366,11 @@ def build_recon_report(path: str | Path, out: str | Path, gt_scene=None, gt_name
                 recon.problems.append(f"ground truth not drawn: {exc}")
         written["trajectory"] = plots.trajectory_plot(
             out / "trajectory.png", estimated[:, :3, 3], None if truth is None else truth[:, :3, 3], title)
-    flythrough = flythrough_frames(recon)
+    flythrough = flythrough_frames(recon, cfg.flythrough)
     if flythrough is not None:
         written["flythrough"] = visualize.write_video(out / f"flythrough{video_ext}", flythrough, fps)
         written["flythrough_still"] = visualize.write_image(out / "flythrough.png", flythrough[0])
-    ply = ply_picture(recon)
+    ply = ply_picture(recon, cfg.flythrough)
     if ply is not None:
         written["ply"] = visualize.write_image(out / "ply.png", ply)
 
@@ -374,7 +385,7 @@ def build_recon_report(path: str | Path, out: str | Path, gt_scene=None, gt_name
         "problems": recon.problems,
         "files": {k: str(v) for k, v in written.items()},
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_json_atomic(out / "summary.json", summary)
     _write_page(out, recon, summary, written)
     return summary
 

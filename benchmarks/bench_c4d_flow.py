@@ -1,0 +1,64 @@
+"""Speed of optical flow and motion masks per image pair, on the analytic box scene.
+
+    .venv/bin/python benchmarks/bench_c4d_flow.py [--sizes 96x128,384x512] [--pairs 8] [--repeats 3]
+
+Per frame size: seconds per pair (median of `--repeats` runs over `--pairs` pairs of offsets 1
+and 3) of the flows 'dis' (medium, the baseline of the ratios), 'dis:fast' and 'gt', and of the
+masks: C4D's correspondence-guided mask (oracle tracks, F by LMedS + refit, Sampson distance)
+and the flow-only baseline (ego-flow from per-frame geometry, normalised error). Prints markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from c4d_pipeline.flow import build_flow
+from c4d_pipeline.motion_mask import correspondence_motion_masks, ego_flow, flow_only_motion_masks, oracle_tracks
+from c4d_pipeline.synthetic import make_box_scene
+
+
+def median_seconds(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", default="96x128,384x512", help="comma-separated HxW")
+    parser.add_argument("--pairs", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    print("| size | step | s / pair | vs DIS medium |")
+    print("|---|---|---|---|")
+    for size in args.sizes.split(","):
+        height, width = (int(v) for v in size.split("x"))
+        scene = make_box_scene(num_frames=8, height=height, width=width, num_tracks=400)
+        pairs = [(i, i + o) for o in (1, 3) for i in range(8 - o)][: args.pairs]
+        flows = build_flow("gt", scene=scene).flow(scene.rgb, pairs)
+        tracks = oracle_tracks(scene)
+        sc = scene
+        egos = np.stack([ego_flow(sc.depth[i], sc.intrinsics[i], sc.intrinsics[j], sc.cam_to_world[i], sc.cam_to_world[j]) for i, j in pairs])
+        steps = {
+            "flow dis (medium)": lambda: build_flow("dis").flow(sc.rgb, pairs),
+            "flow dis:fast": lambda: build_flow("dis:fast").flow(sc.rgb, pairs),
+            "flow gt (exact)": lambda: build_flow("gt", scene=sc).flow(sc.rgb, pairs),
+            "mask C4D (LMedS + Sampson)": lambda: correspondence_motion_masks(tracks, flows, pairs),
+            "mask flow-only (given ego-flow)": lambda: flow_only_motion_masks(flows, egos, pairs, sc.num_frames),
+            "ego-flow from depth + poses": lambda: [ego_flow(sc.depth[i], sc.intrinsics[i], sc.intrinsics[j], sc.cam_to_world[i], sc.cam_to_world[j]) for i, j in pairs],
+        }
+        seconds = {name: median_seconds(fn, args.repeats) / len(pairs) for name, fn in steps.items()}
+        base = seconds["flow dis (medium)"]
+        for name, value in seconds.items():
+            print(f"| {height}x{width} | {name} | {value:.4f} | {value / base:.2f}x |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

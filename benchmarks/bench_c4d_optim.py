@@ -1,0 +1,105 @@
+"""Speed and peak memory of the C4D optimisation (init, stage 1 GA+CMA+CTS, stage 2 PTS) on this CPU.
+
+Every case runs in its own subprocess (peak RSS is per process) on an analytic box scene with
+ground-truth pointmaps and flow (`c4d_pipeline.synthetic`), the default scene graph (offsets
+1,3,5,7,9, symmetric) and the default config. Per stage it times `--iters` iterations and reports
+the median seconds per iteration and that median x 300 (the paper's 300 iterations per stage:
+EXTRAPOLATED from the measured iterations, labelled as such). Baseline in the same run: the same
+small case without edge chunking (`optim.edge_chunk=0`).
+
+    .venv/bin/python benchmarks/bench_c4d_optim.py [--quick] [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+
+
+def one_case(frames: int, height: int, width: int, iters: int, threads: int, overrides: list[str]) -> dict:
+    import numpy as np
+    import torch
+
+    from c4d.config import load_config
+    from c4d_pipeline.flow import build_flow
+    from c4d_pipeline.motion_mask import oracle_tracks
+    from c4d_pipeline.optimize import optimise
+    from c4d_pipeline.pointmaps import GroundTruthPointmaps
+    from c4d_pipeline.scene_graph import graph_from_config
+    from c4d_pipeline.synthetic import make_box_scene
+
+    torch.set_num_threads(threads)
+    start = time.perf_counter()
+    scene = make_box_scene(frames, height, width, num_tracks=1024, seed=0)
+    cfg = load_config("c4d", "default", overrides=[f"optim.stage1_iters={iters}",
+                                                   f"optim.stage2_iters={iters}", *overrides])
+    edges = graph_from_config(frames, cfg.graph)
+    pw = GroundTruthPointmaps(scene, static_bias=False).pointmaps(scene.rgb, edges)
+    flows = build_flow("gt", scene=scene).flow(scene.rgb, [tuple(map(int, e)) for e in edges])
+    tracks = oracle_tracks(scene)
+    inputs_s = time.perf_counter() - start
+    rss_inputs = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # GiB (ru_maxrss in KiB)
+    res = optimise(pw, frames, cfg, flows=flows, tracks=tracks.tracks, visible=tracks.visible)
+    rss_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    hist = res.history
+    s1 = float(np.median(hist["losses"]["stage1"]["seconds"]))
+    s2 = float(np.median(hist["losses"]["stage2"]["seconds"]))
+    return {
+        "frames": frames, "size": f"{width}x{height}", "edges": len(edges), "iters_measured": iters,
+        "threads": threads, "overrides": overrides, "inputs_s": inputs_s,
+        "init_s": hist["seconds"]["init"], "stage1_s_per_iter": s1, "stage1_s_300_extrapolated": 300 * s1,
+        "pts_targets_s": hist["seconds"]["pts_targets"], "stage2_s_per_iter": s2,
+        "stage2_s_300_extrapolated": 300 * s2, "rss_after_inputs_gib": rss_inputs, "rss_peak_gib": rss_peak,
+    }
+
+
+def run_subprocess(frames, height, width, iters, threads, overrides) -> dict:
+    cmd = [sys.executable, __file__, "--one", str(frames), str(height), str(width), str(iters),
+           str(threads), *overrides]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes only")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=3, help="runs of the small baseline pair")
+    parser.add_argument("--one", nargs="+", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        frames, height, width, iters, threads = map(int, args.one[:5])
+        print(json.dumps(one_case(frames, height, width, iters, threads, args.one[5:])))
+        return 0
+    rows = []
+    # baseline comparison (same run): edge chunking on vs off, small case, several repeats
+    pair = {}
+    for label, ov in (("chunked (edge_chunk=64)", []), ("unchunked (edge_chunk=0)", ["optim.edge_chunk=0"])):
+        runs = [run_subprocess(24, 96, 128, 5, args.threads, ov) for _ in range(args.repeats)]
+        med = {k: sorted(r[k] for r in runs)[len(runs) // 2] for k in ("stage1_s_per_iter", "rss_peak_gib")}
+        pair[label] = med
+        rows.append({**runs[0], **med, "label": label})
+    cases = [(24, 96, 128), (90, 96, 128)] + ([] if args.quick else [(24, 384, 512), (90, 384, 512)])
+    for frames, height, width in cases:
+        iters = 5 if height <= 96 else 2
+        rows.append({**run_subprocess(frames, height, width, iters, args.threads, []), "label": "default"})
+    print(f"{'case':34s} {'E':>4s} {'init s':>7s} {'st1 s/it':>9s} {'st1 x300*':>9s} "
+          f"{'PTS tgt s':>9s} {'st2 s/it':>9s} {'st2 x300*':>9s} {'RSS GiB':>8s}")
+    for r in rows:
+        print(f"{r['label'][:18]:18s} {r['frames']:3d}f {r['size']:>9s} {r['edges']:4d} {r['init_s']:7.2f} "
+              f"{r['stage1_s_per_iter']:9.3f} {r['stage1_s_300_extrapolated']:9.1f} {r['pts_targets_s']:9.2f} "
+              f"{r['stage2_s_per_iter']:9.3f} {r['stage2_s_300_extrapolated']:9.1f} {r['rss_peak_gib']:8.2f}")
+    a, b = pair["chunked (edge_chunk=64)"], pair["unchunked (edge_chunk=0)"]
+    print(f"* x300 = median measured seconds per iteration x 300 (extrapolated). threads={args.threads}")
+    print(f"chunked / unchunked: stage-1 time {a['stage1_s_per_iter'] / b['stage1_s_per_iter']:.2f}x, "
+          f"peak RSS {a['rss_peak_gib'] / b['rss_peak_gib']:.2f}x (medians of {args.repeats})")
+    print(json.dumps(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

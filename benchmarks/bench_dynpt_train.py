@@ -1,0 +1,142 @@
+"""Benchmark of DynPT training: data pipeline throughput, train step time and peak memory.
+
+Usage:
+    python benchmarks/bench_dynpt_train.py [--shards DIR] [--workers 2] [--clips 120]
+        [--models tiny,full] [--steps 3] [--repeats 3]
+
+- Data: clips/s of the training pipeline (decode, clip choice, augmentation, track sampling,
+  batching through a DataLoader) with `--workers` worker processes, on 24-frame 256x256 shards
+  with 256 tracks per clip (target >= 50 clips/s, so the loader never starves a GPU step); the
+  baseline in the same run is the same pipeline in the main process (0 workers). Without
+  --shards, 8 such scenes are generated first with `c4d datagen` (takes a minute or two).
+- Train step: median seconds per optimiser step (forward, loss, backward, AdamW) and the peak
+  resident memory of a fresh process, for the `tiny-cpu` model and the paper's `full` model
+  (frozen ViT-L with random weights, as no DUSt3R file is needed to time it), both on the same
+  clip `--clip T,H,W,N` with batch 1; ratio full / tiny. The paper's clip (24,384,512,384) is
+  far beyond a 2-core CPU for the full model; the default is a reduced 8,128,128,64.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from c4d.config import load_config
+
+MODELS = {  # name -> (preset, overrides)
+    "tiny": ("tiny-cpu", []),
+    "cnn-only": ("paper-gpu-cnn-only", []),
+    "full": ("paper-gpu", ["model.encoder_3d.random_init=true",
+                           "model.encoder_3d.require_checkpoint=false"]),
+}
+
+
+def data_throughput(shards: str, workers: int, clips: int, repeats: int) -> list[float]:
+    """clips/s of the training DataLoader over `shards` (24 frames, 256x256, 256 tracks)."""
+    from dynpt.data import ShardStream, make_loader
+
+    cfg = load_config("dynpt", "paper-gpu", overrides=[
+        "data.crop_size=[256,256]", "data.num_tracks=256", "data.num_frames=24",
+        "data.max_stride=1", "data.shuffle_buffer=4"]).data
+    rates = []
+    for r in range(repeats):
+        loader = make_loader(ShardStream([shards], [1.0], cfg, seed=r), 4, workers)
+        it = iter(loader)
+        next(it)  # worker start-up is not throughput
+        start, seen = time.perf_counter(), 0
+        while seen < clips:
+            seen += len(next(it)["video"])
+        rates.append(seen / (time.perf_counter() - start))
+        del it, loader
+    return rates
+
+
+def step_times(model: str, steps: int, clip: str) -> dict:
+    """Seconds per train step and peak RSS on a (T,H,W,N) clip (a fresh process by `main`)."""
+    from dynpt.losses import LossWeights, dynpt_loss
+    from dynpt.model import build_model
+
+    preset, overrides = MODELS[model]
+    cfg = load_config("dynpt", preset, overrides=overrides)
+    net = build_model(cfg.model).train()
+    opt = torch.optim.AdamW([p for p in net.parameters() if p.requires_grad], lr=1e-4)
+    T, H, W, N = (int(v) for v in clip.split(","))
+    B = 1
+    gen = torch.Generator().manual_seed(0)
+    video = torch.rand(B, T, 3, H, W, generator=gen) * 255
+    queries = torch.rand(B, N, 3, generator=gen) * torch.tensor([T - 1, W - 1, H - 1])
+    queries[..., 0] = queries[..., 0].round()
+    target = {"tracks": queries[:, None, :, 1:].expand(B, T, N, 2).contiguous(),
+              "visible": torch.rand(B, T, N, generator=gen) > 0.3,
+              "moving": torch.rand(B, T, N, generator=gen) > 0.8}
+    weights = LossWeights.from_config(cfg.loss)
+    times = []
+    for _ in range(steps + 1):  # the first step warms up allocators
+        start = time.perf_counter()
+        loss, _ = dynpt_loss(net(video, queries), target, weights)
+        loss.backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        times.append(time.perf_counter() - start)
+    return {"model": model, "B": B, "T": T, "HxW": f"{H}x{W}", "N": N,
+            "trainable_params": sum(p.numel() for p in net.parameters() if p.requires_grad),
+            "step_s": statistics.median(times[1:]), "all_step_s": times[1:],
+            "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--shards", help="24-frame 256x256 shard set (default: generate 8 scenes)")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--clips", type=int, default=120, help="clips timed per repeat")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--models", default="tiny,cnn-only,full")
+    parser.add_argument("--steps", type=int, default=3, help="timed train steps per model")
+    parser.add_argument("--clip", default="8,128,128,64", help="T,H,W,N of the timed clip")
+    parser.add_argument("--only-steps", help=argparse.SUPPRESS)  # child process mode
+    args = parser.parse_args()
+    if args.only_steps:
+        print(json.dumps(step_times(args.only_steps, args.steps, args.clip)))
+        return
+
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    if args.clips > 0:
+        shards = args.shards
+        if not shards:
+            from c4d.cli import main as c4d_main
+
+            shards = str(Path(tempfile.mkdtemp(prefix="bench-dynpt-")) / "shards")
+            c4d_main(["datagen", "--num-scenes", "8", "--out", shards, "--resolution", "256",
+                      "--frames", "24", "--scenes-per-shard", "4"])
+        base = data_throughput(shards, 0, args.clips // 2, args.repeats)
+        rates = data_throughput(shards, args.workers, args.clips, args.repeats)
+        print(f"data pipeline, 24x256x256, 256 tracks, batch 4: "
+              f"0 workers {statistics.median(base):.1f} clips/s (runs {[round(r, 1) for r in base]}); "
+              f"{args.workers} workers {statistics.median(rates):.1f} clips/s "
+              f"(runs {[round(r, 1) for r in rates]}); ratio {statistics.median(rates) / statistics.median(base):.2f}x")
+    results = []
+    for model in [m for m in args.models.split(",") if m]:
+        out = subprocess.run([sys.executable, __file__, "--only-steps", model, "--steps",
+                              str(args.steps), "--clip", args.clip],
+                             capture_output=True, text=True, check=True)
+        results.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        r = results[-1]
+        print(f"train step {r['model']:>4} (B={r['B']} T={r['T']} {r['HxW']} N={r['N']}, "
+              f"{r['trainable_params'] / 1e6:.2f}M trainable): median {r['step_s']:.2f} s "
+              f"(runs {[round(t, 2) for t in r['all_step_s']]}), peak RSS {r['peak_rss_gib']:.2f} GiB")
+    for r in results[1:]:
+        print(f"ratio {r['model']}/{results[0]['model']} step time: "
+              f"{r['step_s'] / results[0]['step_s']:.1f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,201 @@
+"""Ablation of the C4D objectives on generated scenes (the paper's Table 6 on our data).
+
+For every scene and static-world-bias setting, the same inputs (ground-truth pointmaps with noise,
+optical flow, C4D motion masks from the oracle tracker's mobility + flow, the scene's 2-D tracks
+for PTS) go through five variants:
+  GA only   stage 1 with GA alone, no stage 2 (DUSt3R-style global alignment)
+  w/o CMA   GA + CTS, then PTS
+  w/o CTS   GA + CMA, then PTS
+  w/o PTS   GA + CMA + CTS, no stage 2 (the full run's stage-1 depth)
+  C4D       GA + CMA + CTS, then PTS
+and is scored with ATE / RPE trans / RPE rot (Sim(3)-aligned) and video depth Abs Rel / RMSE /
+delta < 1.25 (per-sequence scale-and-shift alignment). Results are cached per (scene, bias) in
+OUT/runs/ so an interrupted run resumes; OUT/ablation.json and OUT/ablation.md hold the tables.
+
+    python -m c4d_pipeline.ablation --dynamic DIR [--static DIR] --out OUT [--size 64]
+        [--preset default] [--flow gt] [--bias on,off] [key=value ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from c4d.config import load_config
+from c4d.errors import UserError
+from c4d_pipeline.eval_metrics import depth_metrics, mask_iou, pose_metrics
+from c4d_pipeline.flow import build_flow, resize_intrinsics, resize_nearest
+from c4d_pipeline.motion_mask import (MotionMaskConfig, correspondence_motion_masks,
+                                      ground_truth_motion_masks, oracle_tracks)
+from c4d_pipeline.optimize import optimise
+from c4d_pipeline.outputs import _atomic
+from c4d_pipeline.pointmaps import GroundTruthPointmaps
+from c4d_pipeline.scene_graph import graph_from_config
+from datagen.scene import Scene
+
+log = logging.getLogger("c4d.ablation")
+
+VARIANTS = ("GA only", "w/o CMA", "w/o CTS", "w/o PTS", "C4D")
+RUNS = {  # stage-1 runs and their weight overrides; "w/o PTS" reuses the C4D run's stage-1 depth
+    "GA only": ["weights.cma=0", "weights.cts=0", "weights.pts=0"],
+    "w/o CMA": ["weights.cma=0"],
+    "w/o CTS": ["weights.cts=0"],
+    "C4D": [],
+}
+METRICS = ("ate", "rpe_trans", "rpe_rot", "abs_rel", "rmse", "delta_1_25")
+
+
+def resize_scene(scene: Scene, size: int) -> Scene:
+    """The scene at `size` pixels on its longer side (area-averaged RGB, nearest labels/depth)."""
+    h, w = scene.image_size
+    if max(h, w) == size:
+        return scene
+    hw = (round(h * size / max(h, w)), round(w * size / max(h, w)))
+    sx, sy = hw[1] / w, hw[0] / h
+    rgb = np.stack([cv2.resize(f, hw[::-1], interpolation=cv2.INTER_AREA) for f in scene.rgb])
+    tracks = scene.tracks.copy()
+    tracks[..., 0] = (tracks[..., 0] + 0.5) * sx - 0.5
+    tracks[..., 1] = (tracks[..., 1] + 0.5) * sy - 0.5
+    return Scene(
+        rgb=rgb, depth=np.stack([resize_nearest(d, hw) for d in scene.depth]),
+        segmentation=np.stack([resize_nearest(s, hw) for s in scene.segmentation]),
+        flow_fwd=None, flow_bwd=None, intrinsics=resize_intrinsics(scene.intrinsics, (h, w), hw),
+        cam_to_world=scene.cam_to_world, object_to_world=scene.object_to_world, objects=scene.objects,
+        tracks=tracks, occluded=scene.occluded, query_frame=scene.query_frame,
+        track_object=scene.track_object, tracks_world=scene.tracks_world,
+        displacement=scene.displacement, moving=scene.moving, meta=scene.meta,
+    )
+
+
+def scores(result_depth, cam_to_world, scene: Scene) -> dict[str, float]:
+    pose = pose_metrics(cam_to_world, scene.cam_to_world)
+    depth = depth_metrics(result_depth, scene.depth, mode="scale_shift")
+    return {"ate": pose["ate"], "rpe_trans": pose["rpe_trans"], "rpe_rot": pose["rpe_rot"],
+            "abs_rel": depth["abs_rel"], "rmse": depth["rmse"], "delta_1_25": depth["delta_1_25"]}
+
+
+def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, flow_spec: str,
+                 masks_from: str) -> dict:
+    """Scores of every variant on one scene: {variant: {metric: value}, 'mask_iou': ...}.
+
+    preset/overrides: the c4d config every variant starts from (each adds its weight overrides).
+    """
+    cfg = load_config("c4d", preset, overrides=overrides)
+    num_frames = scene.num_frames
+    edges = graph_from_config(num_frames, cfg.graph)
+    pairs = [tuple(map(int, e)) for e in edges]
+    gp = cfg.gt_pointmaps
+    source = GroundTruthPointmaps(scene, gp.depth_noise, gp.smooth_noise, gp.smooth_cells,
+                                  gp.scale_range, gp.conf_max, bias, gp.bias_fit, gp.seed)
+    pw = source.pointmaps(scene.rgb, edges)
+    flows = build_flow(flow_spec, scene=scene).flow(scene.rgb, pairs)
+    tracks = oracle_tracks(scene)
+    gt_masks = ground_truth_motion_masks(scene)
+    if masks_from == "gt":
+        masks = gt_masks
+    else:
+        masks = correspondence_motion_masks(tracks, flows, pairs,
+                                            MotionMaskConfig(**dict(cfg.motion_mask.c4d))).masks
+    out: dict = {"mask_iou": mask_iou(masks, gt_masks)["iou"],
+                 "moving_fraction": float(gt_masks.mean()), "seconds": {}}
+    for name, variant in RUNS.items():
+        run_cfg = load_config("c4d", preset, overrides=list(overrides) + variant)
+        start = time.perf_counter()
+        res = optimise(pw, num_frames, run_cfg, flows=flows, static_masks=~masks,
+                       tracks=tracks.tracks, visible=tracks.visible)
+        out["seconds"][name] = time.perf_counter() - start
+        out[name] = scores(res.depth, res.cam_to_world, scene)
+        if name == "C4D":
+            out["w/o PTS"] = scores(res.depth_stage1, res.cam_to_world, scene)
+    return out
+
+
+def mean_table(runs: dict, keys: list[str]) -> dict[str, dict[str, float]]:
+    """Mean of every metric per variant over the runs named in `keys`."""
+    return {v: {m: float(np.mean([runs[k][v][m] for k in keys])) for m in METRICS} for v in VARIANTS}
+
+
+def markdown(tables: dict, counts: dict) -> str:
+    lines = []
+    for title, table in tables.items():
+        lines += [f"### {title} ({counts[title]} scenes)", "",
+                  "| variant | ATE | RPE trans | RPE rot (deg) | Abs Rel | RMSE | delta<1.25 |",
+                  "|---|---|---|---|---|---|---|"]
+        for v in VARIANTS:
+            r = table[v]
+            lines.append(f"| {v} | {r['ate']:.4f} | {r['rpe_trans']:.4f} | {r['rpe_rot']:.3f} | "
+                         f"{r['abs_rel']:.4f} | {r['rmse']:.4f} | {r['delta_1_25']:.3f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m c4d_pipeline.ablation", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--dynamic", required=True, help="shards of dynamic scenes (datagen output)")
+    parser.add_argument("--static", help="shards of static scenes (no tossed objects)")
+    parser.add_argument("--out", required=True, help="output folder (resumable)")
+    parser.add_argument("--max-scenes", type=int, default=None, help="per scene set")
+    parser.add_argument("--size", type=int, default=64, help="longer image side for the optimisation")
+    parser.add_argument("--preset", default="default", help="c4d config preset or YAML")
+    parser.add_argument("--flow", default="gt", help="flow estimator: gt | dis[:PRESET] | raft:PATH")
+    parser.add_argument("--masks", default="c4d", choices=("c4d", "gt"), help="motion masks used by CMA")
+    parser.add_argument("--bias", default="on,off", help="static-world bias settings to run")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("overrides", nargs="*", help="config key=value overrides")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(args.threads)
+    from datagen import read_scenes
+
+    load_config("c4d", args.preset, overrides=args.overrides)  # fail early on a bad override
+    out = Path(args.out)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    biases = [b.strip() for b in args.bias.split(",")]
+    if not set(biases) <= {"on", "off"}:
+        raise UserError(f"--bias takes on, off or on,off; got {args.bias!r}")
+    runs, groups = {}, {}
+    for group, source in (("dynamic", args.dynamic), ("static", args.static)):
+        if not source:
+            continue
+        for n, scene in enumerate(read_scenes(source)):
+            if args.max_scenes is not None and n >= args.max_scenes:
+                break
+            scene = resize_scene(scene, args.size)
+            for bias in biases:
+                key = f"{group}-{n:03d}-bias-{bias}"
+                path = out / "runs" / f"{key}.json"
+                if path.is_file():
+                    runs[key] = json.loads(path.read_text())
+                else:
+                    log.info("%s: %d frames %dx%d", key, scene.num_frames, *scene.image_size)
+                    runs[key] = ablate_scene(scene, args.preset, list(args.overrides), bias == "on",
+                                             args.flow, args.masks)
+                    text = json.dumps(runs[key], indent=1)
+                    _atomic(path, lambda fh: fh.write(text.encode()))
+                    log.info("%s: ATE GA only %.4f, C4D %.4f", key, runs[key]["GA only"]["ate"], runs[key]["C4D"]["ate"])
+                groups.setdefault(f"{group} scenes, static-world bias {bias}", []).append(key)
+    tables = {title: mean_table(runs, keys) for title, keys in groups.items()}
+    counts = {title: len(keys) for title, keys in groups.items()}
+    summary = {"args": vars(args), "tables": tables, "counts": counts, "runs": runs}
+    text = json.dumps(summary, indent=1)
+    _atomic(out / "ablation.json", lambda fh: fh.write(text.encode()))
+    md = markdown(tables, counts)
+    _atomic(out / "ablation.md", lambda fh: fh.write(md.encode()))
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except UserError as exc:
+        print(f"ablation: error: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -1,0 +1,119 @@
+"""The two-stage optimisation: recovers a known trajectory, chunking is exact, stage 2, bad input."""
+
+import numpy as np
+import pytest
+import torch
+
+from c4d.config import load_config
+from c4d.errors import UserError
+from c4d_pipeline import optimize as opt
+from c4d_pipeline.alignment import initialise
+from c4d_pipeline.eval_metrics import pose_metrics
+from c4d_pipeline.flow import build_flow
+from c4d_pipeline.motion_mask import ground_truth_motion_masks, oracle_tracks
+from c4d_pipeline.pointmaps import GroundTruthPointmaps
+from c4d_pipeline.scene_graph import strided_window_pairs
+from c4d_pipeline.scene_params import SceneParams
+from c4d_pipeline.synthetic import make_box_scene
+
+T, H, W = 8, 24, 32
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def case():
+    scene = make_box_scene(num_frames=T, height=H, width=W, num_tracks=96, seed=1)
+    edges = strided_window_pairs(T, window=3, stride=2)
+    flows = build_flow("gt", scene=scene).flow(scene.rgb, [tuple(e) for e in edges])
+    return scene, edges, flows
+
+
+def tiny_cfg(*overrides):
+    return load_config("c4d", "tiny", overrides=["graph.window=3", *overrides])
+
+
+def test_recovers_known_trajectory_from_clean_inputs(case):
+    scene, edges, flows = case
+    pw = GroundTruthPointmaps(scene, depth_noise=0, smooth_noise=0, static_bias=False).pointmaps(scene.rgb, edges)
+    tracks = oracle_tracks(scene)
+    res = opt.optimise(pw, T, tiny_cfg(), flows=flows, static_masks=~ground_truth_motion_masks(scene),
+                       tracks=tracks.tracks, visible=tracks.visible)
+    metrics = pose_metrics(res.cam_to_world, scene.cam_to_world)
+    assert metrics["ate"] < 0.01 and metrics["rpe_rot"] < 0.2  # scene is ~8 units across
+    np.testing.assert_allclose(res.intrinsics[:, 0, 0], scene.intrinsics[:, 0, 0], rtol=0.01)
+    scale = np.median(scene.depth / res.depth)
+    assert np.median(np.abs(scale * res.depth / scene.depth - 1)) < 0.01
+    assert set(res.history["seconds"]) >= {"init", "stage1", "stage2"}
+    assert len(res.history["losses"]["stage1"]["ga"]) == 60
+
+
+def test_global_alignment_converges_from_perturbed_poses(case):
+    scene, edges, _ = case
+    pw = GroundTruthPointmaps(scene, depth_noise=0, smooth_noise=0, static_bias=False).pointmaps(scene.rgb, edges)
+    init = initialise(pw, T)
+    g = torch.Generator().manual_seed(0)
+    poses = init.cam_to_world.clone()
+    poses[:, :3, 3] += 0.05 * torch.randn(T, 3, generator=g)  # 5 % of the median depth
+    params = SceneParams(init.depth, poses, init.focal, init.edge_scale, init.edge_rotation, init.edge_translation)
+    data = opt._Inputs(pw, None, None, "cpu")
+    cfg = tiny_cfg("weights.cma=0", "weights.cts=0")
+    step = lambda: opt._stage1_step(params, data, cfg.weights, opt._StepCfg(0, 50.0), None)
+    before = pose_metrics(params.cam_to_world().detach().numpy(), scene.cam_to_world)["ate"]
+    curves = opt._run_adam(list(params.parameters()), 150, cfg.optim, step, "test", False)
+    after = pose_metrics(params.cam_to_world().detach().numpy(), scene.cam_to_world)["ate"]
+    assert curves["ga"][-1] < 0.2 * curves["ga"][0]
+    assert after < 0.3 * before
+
+
+def test_edge_chunks_give_the_unchunked_gradient(case):
+    scene, edges, flows = case
+    pw = GroundTruthPointmaps(scene).pointmaps(scene.rgb, edges)
+    init = initialise(pw, T)
+    cfg = tiny_cfg()
+    data = opt._Inputs(pw, flows, ~ground_truth_motion_masks(scene), "cpu")
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    pixels = torch.stack([u, v], -1).reshape(-1, 2).float()
+    grads = []
+    for chunk in (0, 5):
+        params = SceneParams(init.depth, init.cam_to_world, init.focal, init.edge_scale,
+                             init.edge_rotation, init.edge_translation)
+        losses = opt._stage1_step(params, data, cfg.weights, opt._StepCfg(chunk, 50.0), pixels)
+        grads.append(([p.grad.clone() for p in params.parameters()], losses))
+    for a, b in zip(grads[0][0], grads[1][0]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+    assert grads[0][1]["total"] == pytest.approx(grads[1][1]["total"], rel=1e-5)
+    assert grads[0][1]["cma"] > 0 and grads[0][1]["cts"] > 0
+
+
+def test_stage2_smooths_depth_and_keeps_cameras(case):
+    scene, edges, flows = case
+    pw = GroundTruthPointmaps(scene, seed=2).pointmaps(scene.rgb, edges)
+    tracks = oracle_tracks(scene)
+    res = opt.optimise(pw, T, tiny_cfg("optim.stage1_iters=20"), flows=flows, tracks=tracks.tracks,
+                       visible=tracks.visible)
+    pts = res.history["losses"]["stage2"]["pts"]
+    assert pts[-1] < 0.5 * pts[0]
+    assert not np.allclose(res.depth, res.depth_stage1)
+
+
+def test_bad_inputs_are_user_errors_or_ignored(case):
+    scene, edges, flows = case
+    pw = GroundTruthPointmaps(scene).pointmaps(scene.rgb, edges)
+    cfg = tiny_cfg("optim.stage1_iters=2", "optim.stage2_iters=0")
+    with pytest.raises(UserError, match="optical flow"):
+        opt.optimise(pw, T, cfg, flows=flows[:-1])
+    with pytest.raises(UserError, match="tracks"):
+        opt.optimise(pw, T, cfg, tracks=np.zeros((T - 1, 4, 2)), visible=np.ones((T - 1, 4), bool))
+    with pytest.raises(UserError, match="frames"):
+        opt.optimise(pw, T - 2, cfg)
+    nan_flows = flows.copy()
+    nan_flows[:, :4] = np.nan
+    res = opt.optimise(pw, T, cfg, flows=nan_flows, static_masks=np.zeros((T, H, W), bool))
+    assert np.isfinite(res.cam_to_world).all()  # no static pixel at all: CMA contributes nothing

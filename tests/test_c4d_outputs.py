@@ -1,0 +1,107 @@
+"""Output files: every file of the contract's table written by `reconstruct` and read back exactly."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from c4d.config import load_config
+from c4d.errors import UserError
+from c4d_pipeline.flow import build_flow
+from c4d_pipeline.motion_mask import oracle_tracks
+from c4d_pipeline.outputs import (Reconstruction, read_ply, read_reconstruction, read_tum, tum_lines,
+                                  write_reconstruction)
+from c4d_pipeline.pipeline import lift_tracks, reconstruct
+from c4d_pipeline.pointmaps import GroundTruthPointmaps
+from c4d_pipeline.synthetic import make_box_scene
+from datagen import geometry
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def random_reconstruction(rng, t=3, h=8, w=10, n=5) -> Reconstruction:
+    quat = geometry.quat_normalize(rng.normal(size=(t, 4)))
+    poses = geometry.make_pose(geometry.quat_to_matrix(quat), rng.normal(size=(t, 3))).astype(np.float32)
+    return Reconstruction(
+        frames=rng.integers(0, 256, (t, h, w, 3), dtype=np.uint8),
+        depth=rng.uniform(0.5, 5, (t, h, w)).astype(np.float32),
+        masks=rng.random((t, h, w)) > 0.7,
+        cam_to_world=poses,
+        intrinsics=np.tile(np.array([[9.0, 0, 4.5], [0, 9.0, 3.5], [0, 0, 1]], np.float32), (t, 1, 1)),
+        points=rng.normal(size=(t, h, w, 3)).astype(np.float32),
+        confidence=rng.uniform(1, 9, (t, h, w)).astype(np.float32),
+        tracks_2d={"tracks": rng.uniform(0, 7, (t, n, 2)).astype(np.float32), "visible": rng.random((t, n)) > 0.2,
+                   "moving": rng.random((t, n)).astype(np.float32), "queries": rng.uniform(0, 7, (n, 3)).astype(np.float32)},
+        tracks_world=rng.normal(size=(t, n, 3)).astype(np.float32),
+        tracks_valid=rng.random((t, n)) > 0.5,
+        report={"seconds": {"stage1": 1.5}, "losses": {"stage1": {"ga": [0.3, 0.2]}}},
+    )
+
+
+def test_round_trip_of_every_file(tmp_path):
+    rec = random_reconstruction(np.random.default_rng(0))
+    out = write_reconstruction(rec, tmp_path / "out", ply_pixel_stride=1, ply_static_frame_stride=1)
+    back = read_reconstruction(out)
+    for name in ("frames", "depth", "masks", "intrinsics", "points", "confidence", "tracks_world", "tracks_valid"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(rec, name), err_msg=name)
+    np.testing.assert_allclose(back.cam_to_world, rec.cam_to_world, atol=1e-6)
+    for key, value in rec.tracks_2d.items():
+        np.testing.assert_array_equal(back.tracks_2d[key], value)
+    assert back.report == rec.report
+    assert sorted(p.name for p in (out / "depth").iterdir()) == [
+        f"{t:06d}.{ext}" for t in range(3) for ext in ("npy", "png")]
+    points, colours = read_ply(out / "scene.ply")
+    assert len(points) == rec.masks.size  # strides 1: every pixel (static of all frames + dynamic)
+    assert not list(out.rglob("*.tmp*"))  # atomic writes leave no temporaries
+
+
+def test_tum_lines_are_standard_order():
+    pose = geometry.make_pose(geometry.quat_to_matrix(np.array([0.0, 1.0, 0.0, 0.0])), np.array([1.0, 2.0, 3.0]))
+    line = tum_lines(pose[None]).split()
+    assert [float(v) for v in line] == [0.0, 1.0, 2.0, 3.0, 1.0, 0.0, 0.0, 0.0]  # t tx ty tz qx qy qz qw
+
+
+def test_reading_a_non_reconstruction_is_a_user_error(tmp_path):
+    with pytest.raises(UserError, match="poses_tum"):
+        read_reconstruction(tmp_path)
+    (tmp_path / "poses_tum.txt").write_text("0 1 2 3\n")
+    with pytest.raises(UserError, match="8 numbers"):
+        read_tum(tmp_path / "poses_tum.txt")
+
+
+def test_lift_tracks_samples_the_pointmaps():
+    points = np.zeros((1, 4, 5, 3), np.float32)
+    points[0, :, :, 0] = np.arange(5)[None]  # x coordinate = column
+    tracks = np.array([[[1.5, 2.0], [9.0, 1.0], [np.nan, 0.0]]], np.float32)
+    world, valid = lift_tracks(points, tracks, np.ones((1, 3), bool))
+    assert world[0, 0, 0] == pytest.approx(1.5)
+    assert valid.tolist() == [[True, False, False]]
+
+
+def test_reconstruct_writes_the_contract_table(tmp_path):
+    scene = make_box_scene(num_frames=6, height=16, width=24, num_tracks=48, seed=5)
+    cfg = load_config("c4d", "tiny", overrides=["graph.window=2", "optim.stage1_iters=10",
+                                                "optim.stage2_iters=5", "pts.window=3", "pts.extend=1"])
+    rec = reconstruct(scene.rgb, GroundTruthPointmaps(scene), build_flow("gt", scene=scene),
+                      oracle_tracks(scene), cfg, tmp_path / "run")
+    names = {p.relative_to(tmp_path / "run").as_posix() for p in (tmp_path / "run").rglob("*") if p.is_file()}
+    for name in ("frames/000005.png", "depth/000000.npy", "depth/000000.png", "masks/000000.png",
+                 "poses_tum.txt", "intrinsics.npy", "pointmaps.npz", "tracks_2d.npz", "tracks_3d.npz",
+                 "scene.ply", "report.json"):
+        assert name in names
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["inputs"]["motion_masks"] == "dynpt+flow"
+    assert {"pointmaps", "flow", "motion_masks", "optimise_stage1", "optimise_stage2"} <= set(report["seconds"])
+    assert rec.masks.any() and rec.tracks_world.shape == (6, 48, 3)
+    with pytest.raises(UserError, match="frames"):
+        reconstruct(scene.rgb, GroundTruthPointmaps(scene), build_flow("gt", scene=scene),
+                    oracle_tracks(make_box_scene(num_frames=5, height=16, width=24)), cfg)
+    no_tracker = reconstruct(scene.rgb, GroundTruthPointmaps(scene), build_flow("gt", scene=scene), None, cfg)
+    assert no_tracker.report["inputs"]["motion_masks"] == "flow-only" and no_tracker.tracks_world is None

@@ -1,0 +1,146 @@
+"""`c4d run` end to end on a short generated video with tiny random-weight networks."""
+
+import argparse
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from c4d.cli import main
+from c4d.config import load_config
+from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
+from c4d_pipeline.video_input import dust3r_resize, load_video_input, plan_preprocessing
+from datagen.generate import generate_scene
+from dynpt.checkpoint import save_checkpoint
+from dynpt.model import build_model
+from dynpt.video_io import write_video
+
+TINY_NET = Dust3rConfig(enc_embed_dim=32, enc_depth=2, enc_num_heads=2, dec_embed_dim=32, dec_depth=2,
+                        dec_num_heads=2, head_type="linear", img_size=512)
+ARGS = ("AsymmetricCroCo3DStereo(pos_embed='RoPE100', img_size=(512, 512), head_type='linear', "
+        "output_mode='pts3d', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), enc_embed_dim=32, "
+        "enc_depth=2, enc_num_heads=2, dec_embed_dim=32, dec_depth=2, dec_num_heads=2)")
+FAST = ["graph.window=2", "optim.stage1_iters=4", "optim.stage2_iters=2", "pts.window=4", "pts.extend=1"]
+
+
+def make_inputs(folder, frames=8, size=64):
+    """A generated MOVi-E video (mp4) and a tiny DUSt3R-layout checkpoint with random weights."""
+    cfg = load_config("datagen", "movi-e", overrides=[f"resolution=[{size},{size}]", f"frames={frames}",
+                                                      "tracks.num_points=16"])
+    video = write_video(folder / "video.mp4", generate_scene(cfg, 0).rgb, fps=12)
+    ckpt = folder / "dust3r_tiny.pth"
+    torch.save({"model": tiny_network().state_dict(), "args": argparse.Namespace(model=ARGS)}, ckpt)
+    return video, ckpt
+
+
+def tiny_network(seed=0) -> Dust3rNet:
+    """Random weights, with head biases that put points in front of the camera, spread like a
+    pinhole camera's rays within each 16x16 patch (a random network has no notion of where a
+    patch is; without this its pointmaps imply no positive focal length)."""
+    torch.manual_seed(seed)
+    net = Dust3rNet(TINY_NET)
+    v, u = torch.meshgrid(torch.arange(16.0), torch.arange(16.0), indexing="ij")
+    with torch.no_grad():
+        for head in (net.downstream_head1, net.downstream_head2):
+            head.proj.weight.mul_(0.05)
+            bias = head.proj.bias.view(4, 16, 16)  # channel-major blocks of p*p values: x, y, z, conf
+            bias[0], bias[1], bias[2], bias[3] = 0.05 * (u - 7.5), 0.05 * (v - 7.5), 2.0, 0.0
+    return net
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("c4d_run")
+    video, ckpt = make_inputs(folder)
+    torch.manual_seed(0)
+    tracker = save_checkpoint(folder / "dynpt_tiny.pt",
+                              build_model(load_config("dynpt/model", "tiny").model), step=0)
+    return folder, video, ckpt, tracker
+
+
+def test_preprocessing_follows_dust3r_sizes():
+    for source, size, expected in [((480, 640), 512, (384, 512)), ((480, 854), 512, (288, 512)),
+                                   ((436, 1024), 512, (208, 512)), ((375, 1242), 512, (144, 512)),
+                                   ((512, 512), 512, (384, 512)), ((480, 640), 224, (224, 224)),
+                                   ((64, 64), 64, (48, 64))]:
+        assert plan_preprocessing(source, size).output_hw == expected, (source, size)
+    frames = np.zeros((1, 40, 80, 3), np.uint8)
+    frames[0, :, 40:] = 255  # right half white
+    out, plan = dust3r_resize(frames, 64)
+    assert out.shape == (1, 32, 64, 3) and plan.crop_xy == (0, 0)
+    assert out[0, :, :30].max() < 30 and out[0, :, 34:].min() > 225
+    # Intrinsics follow the resize: the principal point of the source centre lands on the output centre.
+    K = plan.intrinsics(np.array([[100.0, 0, 39.5], [0, 100, 19.5], [0, 0, 1]]))
+    np.testing.assert_allclose(K[:2, 2], [31.5, 15.5])
+    np.testing.assert_allclose(K[0, 0], 80.0)
+
+
+def test_run_writes_every_output_of_the_contract(inputs, tmp_path):
+    folder, video, ckpt, tracker = inputs
+    out = tmp_path / "out"
+    code = main(["run", str(video), *FAST, "--out", str(out), "--pointmaps", str(ckpt), "--tracker", str(tracker),
+                 "--size", "64", "--preset", "tiny", "--grid-size", "16"])
+    assert code == 0
+    T = 8
+    for name in [f"frames/{T - 1:06d}.png", "depth/000000.npy", "depth/000000.png", "masks/000000.png",
+                 "poses_tum.txt", "intrinsics.npy", "pointmaps.npz", "tracks_2d.npz", "tracks_3d.npz",
+                 "scene.ply", "report.json"]:
+        assert (out / name).is_file(), name
+    assert cv2.imread(str(out / "frames/000000.png")).shape == (48, 64, 3)
+    assert np.load(out / "depth/000000.npy").shape == (48, 64)
+    assert np.load(out / "intrinsics.npy").shape == (T, 3, 3)
+    points = np.load(out / "pointmaps.npz")
+    assert points["points"].shape == (T, 48, 64, 3) and (points["confidence"] >= 1).all()
+    assert np.load(out / "tracks_3d.npz")["tracks_world"].shape[0] == T
+    assert len((out / "poses_tum.txt").read_text().splitlines()) == T
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"]["motion_masks"] == "dynpt+flow"
+    assert report["inputs"]["frame_indices"] == list(range(T))
+    assert report["inputs"]["pointmap_source"] == "Dust3rPointmaps"
+
+
+def test_run_without_tracker_uses_flow_only_masks(inputs, tmp_path, caplog):
+    folder, video, ckpt, _ = inputs
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING"):
+        code = main(["run", str(video), *FAST, "--out", str(out), "--pointmaps", str(ckpt), "--size", "64",
+                     "--preset", "tiny", "--stride", "2"])
+    assert code == 0
+    assert "no --tracker given" in caplog.text
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"]["motion_masks"] == "flow-only" and report["inputs"]["frame_indices"] == [0, 2, 4, 6]
+    assert not (out / "tracks_3d.npz").exists() or np.load(out / "tracks_3d.npz")["tracks_world"].size == 0
+
+
+def test_bad_inputs_fail_fast_with_one_line(inputs, tmp_path, capsys):
+    folder, video, ckpt, _ = inputs
+    corrupt = tmp_path / "corrupt.mp4"
+    corrupt.write_bytes(np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    truncated = tmp_path / "truncated.mp4"
+    truncated.write_bytes(video.read_bytes()[: video.stat().st_size // 3])
+    cases = [
+        (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(tmp_path / "none.pth")], "does not exist"),
+        (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--tracker", "x.pt"], "tracker checkpoint"),
+        (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(video)], "cannot read checkpoint"),
+        (["run", str(corrupt), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--size", "64"], "corrupt"),
+        (["run", str(truncated), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--size", "64"], "truncated"),
+        (["run", str(video), "optim.nope=1", "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt)], "unknown config key"),
+        (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--flow", "raft:none.pth"], "RAFT weights"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_video_folder_input_with_frame_limit(inputs, tmp_path):
+    folder, video, _, _ = inputs
+    frames_dir = tmp_path / "frames"
+    frames_dir.mkdir()
+    for t, frame in enumerate(load_video_input(video, size=64).frames):
+        cv2.imwrite(str(frames_dir / f"{t:03d}.png"), frame[..., ::-1])
+    loaded = load_video_input(frames_dir, size=64, max_frames=3)
+    assert loaded.frames.shape == (3, 48, 64, 3) and loaded.source_indices.tolist() == [0, 1, 2]

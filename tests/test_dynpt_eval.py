@@ -1,0 +1,112 @@
+"""Evaluation: TAP-Vid pickles and query modes, the eval CLI's JSON and Markdown."""
+
+import json
+import pickle
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from c4d.cli import main
+from dynpt.checkpoint import save_checkpoint
+from dynpt.evaluate import evaluate_items, load_source
+from dynpt.model import build_model
+from dynpt.tapvid_data import queries_first, queries_strided, read_tapvid
+from c4d.config import load_config
+from tests.dynpt_testdata import synthetic_shards
+
+
+def _tapvid_entry(seed, T=11, N=6, size=(48, 40)):
+    rng = np.random.default_rng(seed)
+    occluded = rng.random((N, T)) < 0.3
+    occluded[-1] = True  # never visible: dropped in 'first' mode
+    return {"video": rng.integers(0, 255, (T, *size, 3), dtype=np.uint8),
+            "points": rng.random((N, T, 2)).astype(np.float32), "occluded": occluded}
+
+
+@pytest.fixture(scope="module")
+def davis_pickle(tmp_path_factory):
+    path = tmp_path_factory.mktemp("tapvid") / "tapvid_davis.pkl"
+    path.write_bytes(pickle.dumps({"bear": _tapvid_entry(0), "cows": _tapvid_entry(1)}))
+    return path
+
+
+def test_query_modes_follow_the_benchmark():
+    occ = np.array([[1, 0, 0], [0, 1, 0], [1, 1, 1], [0, 0, 0], [1, 1, 0], [0, 0, 0]], bool)  # (T=6,N=3)
+    tracks = np.arange(36, dtype=np.float32).reshape(6, 3, 2)
+    q, idx = queries_first(occ, tracks)
+    assert idx.tolist() == [0, 1, 2] and q[:, 0].tolist() == [1, 0, 0]
+    np.testing.assert_array_equal(q[0, 1:], tracks[1, 0, ::-1])  # (t, y, x)
+    q, idx = queries_strided(occ, tracks, stride=5)
+    assert q[:, 0].tolist() == [0, 0, 5, 5, 5] and idx.tolist() == [1, 2, 0, 1, 2]
+
+
+def test_tapvid_pickle_resized_to_256_and_points_scaled(davis_pickle):
+    items = list(read_tapvid(davis_pickle))
+    assert [i["name"] for i in items] == ["bear", "cows"]
+    raw = _tapvid_entry(0)
+    assert items[0]["video"].shape == (11, 256, 256, 3)
+    np.testing.assert_allclose(items[0]["tracks"], raw["points"].transpose(1, 0, 2) * 256 - 0.5,
+                               rtol=1e-6)
+    # Kinetics: a list of entries whose video is JPEG bytes.
+    entry = _tapvid_entry(2)
+    entry["video"] = np.array([cv2.imencode(".jpg", f)[1].tobytes() for f in entry["video"]],
+                              dtype=object)
+    kinetics = davis_pickle.parent / "kinetics"
+    kinetics.mkdir()
+    (kinetics / "0000_of_0010.pkl").write_bytes(pickle.dumps([entry]))
+    (item,) = read_tapvid(kinetics)
+    assert item["name"] == "0000_of_0010/0000" and item["video"].shape == (11, 256, 256, 3)
+
+
+class OracleTracker:
+    """Returns the ground truth of one item: checks the plumbing, coordinates and metrics."""
+
+    def __init__(self, item):
+        self.item = item
+
+    def track(self, video, queries):
+        # Recover each query's track from its (t, x, y) on the ground truth.
+        t = queries[:, 0].astype(int)
+        gt = self.item["tracks"]  # (T,N,2)
+        index = [int(np.argmin(np.abs(gt[ti] - q[1:]).sum(-1))) for ti, q in zip(t, queries)]
+        moving = np.zeros(gt[:, index, 0].shape, np.float32)
+        return SimpleNamespace(tracks=gt[:, index], visible=~self.item["occluded"][:, index],
+                               moving=moving)
+
+
+@pytest.mark.parametrize("mode", ["first", "strided"])
+def test_perfect_tracker_scores_one(davis_pickle, mode):
+    cfg = OmegaConf.create({"resolution": [256, 256]})
+    items, kind = load_source(str(davis_pickle), cfg)
+    assert kind == "tapvid"
+    result = evaluate_items(OracleTracker(items[0]), items[:1], mode)
+    s = result["summary"]
+    assert s["average_jaccard"] == pytest.approx(1.0) and s["occlusion_accuracy"] == 1.0
+    assert "d_acc" not in s  # no mobility labels in TAP-Vid
+
+
+def test_eval_cli_writes_json_and_markdown(tmp_path, davis_pickle, capsys):
+    ckpt = tmp_path / "tiny.pt"
+    save_checkpoint(ckpt, build_model(load_config("dynpt", "tiny-cpu").model), step=0)
+    shards = synthetic_shards(12, 3)
+    out = tmp_path / "eval-shards"
+    assert main(["eval", "--ckpt", str(ckpt), "--data", str(shards), "--out", str(out),
+                 "--config", "tiny-cpu", "eval.resolution=[32,32]", "eval.num_tracks=8",
+                 "eval.num_scenes=2"]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    assert report["summary"]["num_videos"] == 2 and len(report["per_video"]) == 2
+    s = report["summary"]
+    assert 0 <= s["d_acc"] <= 1 and 0 <= s["average_jaccard"] <= 1
+    # Synthetic scenes: half the points move, so D-ACC splits the two halves.
+    assert s["d_acc"] == pytest.approx(0.5 * (s["d_acc_moving"] + s["d_acc_static"]), abs=0.15)
+    table = (out / "eval.md").read_text()
+    assert table.startswith("| source | videos | D-ACC") and table in capsys.readouterr().out
+    out2 = tmp_path / "eval-davis"
+    assert main(["eval", "--ckpt", str(ckpt), "--data", str(davis_pickle), "--mode", "strided",
+                 "--out", str(out2), "--config", "tiny-cpu", "eval.resolution=[64,64]"]) == 0
+    summary = json.loads((out2 / "eval.json").read_text())["summary"]
+    assert summary["num_videos"] == 2 and "d_acc" not in summary
+    assert main(["eval", "--ckpt", str(tmp_path / "missing.pt"), "--data", str(shards)]) == 2
