@@ -15,7 +15,7 @@ one refinement iteration over 1,000 points (the largest step). With `--end-to-en
 `Tracker.track` once per case on a real `--frames`-frame video (slow on a CPU; checks the model).
 
     .venv/bin/python benchmarks/bench_dynpt_model.py [--repeats 3] [--points 1000] [--frames 24]
-        [--cases cnn-256,cnn-384x512,vitl-256,vitl-384x512] [--end-to-end] [--device cpu]
+        [--cases cnn-256,cnn-384x512,vitl-256,vitl-384x512] [--end-to-end] [--device cpu] [--threads N]
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ def _peak_mib() -> float:
 
 
 def _median_seconds(fn, repeats: int, sync) -> float:
+    fn()  # warm-up: kernel selection and allocator, not part of the timing
     times = []
     for _ in range(repeats):
         sync()
@@ -58,9 +59,12 @@ def _median_seconds(fn, repeats: int, sync) -> float:
     return statistics.median(times)
 
 
-def run_case(name: str, points: int, frames: int, repeats: int, device: str, end_to_end: bool) -> dict:
+def run_case(name: str, points: int, frames: int, repeats: int, device: str, end_to_end: bool,
+             threads: int) -> dict:
     """One case in this process: parameter counts, timings, peak memory."""
     H, W, vit = CASES[name]
+    if threads:
+        torch.set_num_threads(threads)
     baseline = _peak_mib()
     torch.manual_seed(0)
     overrides = ["model.resolution=null"] + (["model.encoder_3d.random_init=true"] if vit else [])
@@ -129,18 +133,19 @@ def main() -> None:
     parser.add_argument("--cases", default=",".join(CASES))
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--end-to-end", action="store_true")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--json", help="also write the results here")
     parser.add_argument("--one-case", help=argparse.SUPPRESS)  # internal: run one case, print JSON
     args = parser.parse_args()
     if args.one_case:
         print(json.dumps(run_case(args.one_case, args.points, args.frames, args.repeats, args.device,
-                                  args.end_to_end)))
+                                  args.end_to_end, args.threads)))
         return
 
     results = []
     for name in args.cases.split(","):
         cmd = [sys.executable, __file__, "--one-case", name, "--repeats", str(args.repeats),
-               "--points", str(args.points), "--frames", str(args.frames), "--device", args.device]
+               "--points", str(args.points), "--frames", str(args.frames), "--device", args.device, "--threads", str(args.threads)]
         cmd += ["--end-to-end"] if args.end_to_end else []
         out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
         results.append(json.loads(out.strip().splitlines()[-1]))

@@ -58,6 +58,12 @@ def _chosen_subcommand(argv: list[str]) -> str | None:
     return next((a for a in argv if a in SUBCOMMANDS), None)
 
 
+def run_subcommand(argv: list[str]) -> int:
+    """Parse `argv` and run its subcommand; exceptions propagate (for callers such as `c4d demo`)."""
+    args = build_parser(_chosen_subcommand(argv)).parse_args(argv)
+    return int(importlib.import_module(SUBCOMMANDS[args.command][0]).run(args) or 0)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     verbose = "-v" in argv or "--verbose" in argv
@@ -67,10 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         datefmt="%H:%M:%S",
     )
     try:
-        chosen = _chosen_subcommand(argv)
-        args = build_parser(chosen).parse_args(argv)
-        module = importlib.import_module(SUBCOMMANDS[args.command][0])
-        return int(module.run(args) or 0)
+        return run_subcommand(argv)
     except UserError as exc:
         if verbose:
             traceback.print_exc()

@@ -82,8 +82,8 @@ def allocate_points(counts: np.ndarray, total: int, max_fraction: float) -> np.n
 
 def surface_normals(depth: np.ndarray, intrinsics: np.ndarray, cam_to_world: np.ndarray,
                     x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World unit normals (n,3) of the depth map's surface at integer pixels (x, y), and whether
-    each is reliable (n,).
+    """World unit normals (n,3), facing the camera, of the depth map's surface at integer pixels
+    (x, y), and whether each is reliable (n,).
 
     The normal is the cross product of central differences of unprojected neighbours; it is
     reliable where the four one-sided normals agree (a smooth surface, not a depth edge), as
@@ -101,8 +101,9 @@ def surface_normals(depth: np.ndarray, intrinsics: np.ndarray, cam_to_world: np.
     def unit(v):
         return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
-    normal = unit(np.cross(right + left, down + up))
-    one_sided = [unit(np.cross(a, b)) for a in (right, left) for b in (down, up)]
+    # Image x right and y down span the surface; (down x right) points back toward the camera.
+    normal = unit(np.cross(down + up, right + left))
+    one_sided = [unit(np.cross(b, a)) for a in (right, left) for b in (down, up)]
     reliable = np.all([np.sum(n * normal, -1) > 0.95 for n in one_sided], axis=0)
     return normal, reliable
 
