@@ -30,6 +30,7 @@ import time
 
 import numpy as np
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from c4d.config import load_config
 from dynpt.inference import Tracker
@@ -47,8 +48,17 @@ def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
 
 
-def _median_seconds(fn, repeats: int, sync) -> float:
-    fn()  # warm-up: kernel selection and allocator, not part of the timing
+def _count_flops(fn) -> int:
+    """Matmul/conv/attention FLOPs of one call (torch's FlopCounterMode; element-wise ops and
+    grid_sample are not counted)."""
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return counter.get_total_flops()
+
+
+def _median_seconds(fn, repeats: int, sync) -> tuple[float, int]:
+    """Median seconds of `repeats` calls, after an untimed warm-up call that counts the FLOPs."""
+    flops = _count_flops(fn)  # also the warm-up: kernel selection and allocator
     times = []
     for _ in range(repeats):
         sync()
@@ -56,7 +66,7 @@ def _median_seconds(fn, repeats: int, sync) -> float:
         fn()
         sync()
         times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return statistics.median(times), flops
 
 
 def run_case(name: str, points: int, frames: int, repeats: int, device: str, end_to_end: bool,
@@ -82,7 +92,7 @@ def run_case(name: str, points: int, frames: int, repeats: int, device: str, end
         m = model.size_multiple
         Hp, Wp = -(-H // m) * m, -(-W // m) * m
         frame = (torch.rand(1, 3, Hp, Wp, generator=rng) * 2 - 1).to(device)
-        encode = _median_seconds(lambda: model.encode_frames(frame), repeats, sync)
+        encode, encode_flops = _median_seconds(lambda: model.encode_frames(frame), repeats, sync)
 
         # one refinement iteration over a full window of points (features: random, unit norm)
         fmaps = torch.randn(1, S, cfg["feature_dim"], Hp // 4, Wp // 4, generator=rng).to(device)
@@ -92,19 +102,24 @@ def run_case(name: str, points: int, frames: int, repeats: int, device: str, end
         pyramid = feature_pyramid(fmaps, cfg["corr_levels"])
         xy = torch.stack([torch.rand(1, points, generator=rng) * (W - 1),
                           torch.rand(1, points, generator=rng) * (H - 1)], -1).to(device)
-        query_feats = model.corr.query_features(pyramid, torch.zeros(1, points, dtype=torch.long, device=device),
-                                                xy, model.stride)
+        t0 = torch.zeros(1, points, dtype=torch.long, device=device)
+        query_feats = model.corr.query_features(pyramid, t0, xy, model.stride)
         coords = xy[:, None].expand(1, S, points, 2).clone()
         logits = coords.new_zeros(1, S, points, 3)
-        iteration = _median_seconds(lambda: model._refine(pyramid, query_feats, coords, logits, 1), repeats, sync)
+        # the iteration costs the same with and without the ViT (same feature width): one timed
+        # sample suffices there (it still counts for the case's peak memory)
+        iteration, iteration_flops = _median_seconds(
+            lambda: model._refine(pyramid, query_feats, coords, logits, 1), 1 if vit else repeats, sync)
 
     windows = len(model.window_starts(frames))
     total = frames * encode + windows * iters * iteration
     result = {
         "case": name, "H": H, "W": W, "points": points, "frames": frames, "repeats": repeats,
         "device": device, "threads": torch.get_num_threads(),
-        "params": model.parameter_counts(),
-        "encode_s_per_frame": encode, "iteration_s": iteration, "windows": windows, "iters": iters,
+        "params": model.parameter_counts(), "iteration_samples": 1 if vit else repeats,
+        "encode_s_per_frame": encode, "iteration_s": iteration,
+        "encode_gflop_per_frame": encode_flops / 1e9, "iteration_gflop": iteration_flops / 1e9,
+        "gflop_per_s": (encode_flops + iteration_flops) / (encode + iteration) / 1e9, "windows": windows, "iters": iters,
         "estimated_s_per_frame": total / frames,
         "steady_state_s_per_frame": encode + iters * iteration / step,  # long videos
         "peak_rss_mib": _peak_mib() - baseline,
@@ -153,7 +168,8 @@ def main() -> None:
         print(f"{name:14s} encode {r['encode_s_per_frame']:8.3f} s/frame  iteration {r['iteration_s']:7.3f} s  "
               f"-> {r['estimated_s_per_frame']:7.2f} s/frame ({r['frames']} frames, {r['windows']} windows "
               f"x {r['iters']} iters), steady {r['steady_state_s_per_frame']:6.2f} s/frame, "
-              f"peak RSS {r['peak_rss_mib']:7.0f} MiB"
+              f"peak RSS {r['peak_rss_mib']:7.0f} MiB; GFLOP encode {r['encode_gflop_per_frame']:.0f}/frame, "
+              f"iteration {r['iteration_gflop']:.0f}, achieved {r['gflop_per_s']:.1f} GFLOP/s"
               + (f", end-to-end {r['end_to_end_s_per_frame']:.2f} s/frame" if "end_to_end_s_per_frame" in r else ""),
               flush=True)
     base = results[0]["estimated_s_per_frame"]

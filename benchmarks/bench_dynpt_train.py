@@ -60,6 +60,21 @@ def data_throughput(shards: str, workers: int, clips: int, repeats: int) -> list
     return rates
 
 
+def decode_rate(shards: str, repeats: int) -> list[float]:
+    """scenes/s of `decode_scene` alone (rgb PNG + labels) in this process: the pipeline's floor."""
+    from datagen.shards import decode_scene, iter_samples, list_shards
+    from dynpt.data import TRAIN_FIELDS
+
+    raw = [s for shard in list_shards(shards) for s in iter_samples(shard)]
+    rates = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for sample in raw:
+            decode_scene(sample, TRAIN_FIELDS)
+        rates.append(len(raw) / (time.perf_counter() - start))
+    return rates
+
+
 def step_times(model: str, steps: int, clip: str) -> dict:
     """Seconds per train step and peak RSS on a (T,H,W,N) clip (a fresh process by `main`)."""
     from dynpt.losses import LossWeights, dynpt_loss
@@ -117,6 +132,9 @@ def main() -> None:
             shards = str(Path(tempfile.mkdtemp(prefix="bench-dynpt-")) / "shards")
             c4d_main(["datagen", "--num-scenes", "8", "--out", shards, "--resolution", "256",
                       "--frames", "24", "--scenes-per-shard", "4"])
+        decode = decode_rate(shards, args.repeats)
+        print(f"decode only (PNG frames + labels), 1 process: {statistics.median(decode):.1f} "
+              f"scenes/s (runs {[round(r, 1) for r in decode]})")
         base = data_throughput(shards, 0, args.clips // 2, args.repeats)
         rates = data_throughput(shards, args.workers, args.clips, args.repeats)
         print(f"data pipeline, 24x256x256, 256 tracks, batch 4: "

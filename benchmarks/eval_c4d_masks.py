@@ -6,6 +6,8 @@
 For every scene (the scene graph of configs/c4d/default.yaml) and every flow (exact 'gt' and
 'dis'), the masks of
   - C4D (sec. 3.2.2) with an ORACLE tracker: the scene's own tracks and mobility labels;
+  - C4D with the oracle's tracks but every mobility set to static (what DynPT's mobility adds
+    beyond LMedS's own robustness to moving points);
   - C4D with a REAL tracker (`--tracker`, a DynPT checkpoint), if given;
   - the flow-only baseline (MonST3R), its ego-flow from the pairwise pointmaps of the
     ground-truth pointmap source with its realistic noise and static-world bias (PnP per pair);
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -61,7 +64,11 @@ def scene_scores(scene, cfg, args, tracker) -> dict[tuple[str, str, float], floa
             for i, j in pairs
         ]),
     }
-    trackers = {"C4D, oracle tracker": oracle_tracks(scene)}
+    oracle = oracle_tracks(scene)
+    trackers = {
+        "C4D, oracle tracker": oracle,
+        "C4D, mobility ignored": replace(oracle, moving=np.zeros_like(oracle.moving)),  # every track static
+    }
     if tracker is not None:
         trackers["C4D, DynPT tracker"] = tracker.track(scene.rgb)
     scores = {}

@@ -40,10 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="e.g. train.steps=200")
 
 
-def _c4d(*argv: str) -> None:
+def _c4d(*argv) -> None:
     """Run one `c4d` subcommand in this process (its errors propagate)."""
+    argv = [str(a) for a in argv]
     log.info("$ c4d %s", " ".join(argv))
-    run_subcommand([str(a) for a in argv])
+    run_subcommand(argv)
 
 
 def _write_json(path: Path, data: dict) -> None:

@@ -12,8 +12,8 @@ and is scored with ATE / RPE trans / RPE rot (Sim(3)-aligned) and video depth Ab
 delta < 1.25 (per-sequence scale-and-shift alignment). Results are cached per (scene, bias) in
 OUT/runs/ so an interrupted run resumes; OUT/ablation.json and OUT/ablation.md hold the tables.
 
-    python -m c4d_pipeline.ablation --dynamic DIR [--static DIR] --out OUT [--size 64]
-        [--preset default] [--flow gt] [--bias on,off] [key=value ...]
+    python -m c4d_pipeline.ablation [--dynamic DIR] [--static DIR] --out OUT [--size 64]
+        [--frames N] [--preset default] [--flow gt] [--bias on,off] [key=value ...]
 """
 
 from __future__ import annotations
@@ -53,25 +53,30 @@ RUNS = {  # stage-1 runs and their weight overrides; "w/o PTS" reuses the C4D ru
 METRICS = ("ate", "rpe_trans", "rpe_rot", "abs_rel", "rmse", "delta_1_25")
 
 
-def resize_scene(scene: Scene, size: int) -> Scene:
-    """The scene at `size` pixels on its longer side (area-averaged RGB, nearest labels/depth)."""
+def resize_scene(scene: Scene, size: int, frames: int | None = None) -> Scene:
+    """The first `frames` frames (all if None) of the scene at `size` pixels on its longer side
+    (area-averaged RGB, nearest-neighbour labels and depth)."""
+    keep = slice(0, frames)
     h, w = scene.image_size
-    if max(h, w) == size:
-        return scene
     hw = (round(h * size / max(h, w)), round(w * size / max(h, w)))
     sx, sy = hw[1] / w, hw[0] / h
-    rgb = np.stack([cv2.resize(f, hw[::-1], interpolation=cv2.INTER_AREA) for f in scene.rgb])
-    tracks = scene.tracks.copy()
+    rgb = np.stack([cv2.resize(f, hw[::-1], interpolation=cv2.INTER_AREA) for f in scene.rgb[keep]])
+    tracks = scene.tracks[:, keep].copy()
     tracks[..., 0] = (tracks[..., 0] + 0.5) * sx - 0.5
     tracks[..., 1] = (tracks[..., 1] + 0.5) * sy - 0.5
+    occluded, query_frame = scene.occluded[:, keep].copy(), scene.query_frame.copy()
+    outside = query_frame >= rgb.shape[0]  # queried after the cut: re-anchor at first visible frame
+    query_frame[outside] = np.argmax(~occluded[outside], axis=1)
+    usable = (~occluded).any(axis=1)
     return Scene(
-        rgb=rgb, depth=np.stack([resize_nearest(d, hw) for d in scene.depth]),
-        segmentation=np.stack([resize_nearest(s, hw) for s in scene.segmentation]),
-        flow_fwd=None, flow_bwd=None, intrinsics=resize_intrinsics(scene.intrinsics, (h, w), hw),
-        cam_to_world=scene.cam_to_world, object_to_world=scene.object_to_world, objects=scene.objects,
-        tracks=tracks, occluded=scene.occluded, query_frame=scene.query_frame,
-        track_object=scene.track_object, tracks_world=scene.tracks_world,
-        displacement=scene.displacement, moving=scene.moving, meta=scene.meta,
+        rgb=rgb, depth=np.stack([resize_nearest(d, hw) for d in scene.depth[keep]]),
+        segmentation=np.stack([resize_nearest(s, hw) for s in scene.segmentation[keep]]),
+        flow_fwd=None, flow_bwd=None, intrinsics=resize_intrinsics(scene.intrinsics[keep], (h, w), hw),
+        cam_to_world=scene.cam_to_world[keep], object_to_world=scene.object_to_world[:, keep],
+        objects=scene.objects, tracks=tracks[usable], occluded=occluded[usable],
+        query_frame=query_frame[usable], track_object=scene.track_object[usable],
+        tracks_world=scene.tracks_world[usable][:, keep], displacement=scene.displacement[usable][:, keep],
+        moving=scene.moving[usable][:, keep], meta=scene.meta,
     )
 
 
@@ -139,11 +144,14 @@ def markdown(tables: dict, counts: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m c4d_pipeline.ablation", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--dynamic", required=True, help="shards of dynamic scenes (datagen output)")
+    parser.add_argument("--dynamic", help="shards of dynamic scenes (datagen output)")
     parser.add_argument("--static", help="shards of static scenes (no tossed objects)")
     parser.add_argument("--out", required=True, help="output folder (resumable)")
     parser.add_argument("--max-scenes", type=int, default=None, help="per scene set")
+    parser.add_argument("--only", default=None,
+                        help="comma-separated scene indices to run (e.g. to split work over processes)")
     parser.add_argument("--size", type=int, default=64, help="longer image side for the optimisation")
+    parser.add_argument("--frames", type=int, default=None, help="use the first N frames of each scene")
     parser.add_argument("--preset", default="default", help="c4d config preset or YAML")
     parser.add_argument("--flow", default="gt", help="flow estimator: gt | dis[:PRESET] | raft:PATH")
     parser.add_argument("--masks", default="c4d", choices=("c4d", "gt"), help="motion masks used by CMA")
@@ -158,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     load_config("c4d", args.preset, overrides=args.overrides)  # fail early on a bad override
     out = Path(args.out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
+    if not (args.dynamic or args.static):
+        raise UserError("give --dynamic and/or --static scene shards (c4d datagen output)")
     biases = [b.strip() for b in args.bias.split(",")]
     if not set(biases) <= {"on", "off"}:
         raise UserError(f"--bias takes on, off or on,off; got {args.bias!r}")
@@ -168,7 +178,9 @@ def main(argv: list[str] | None = None) -> int:
         for n, scene in enumerate(read_scenes(source)):
             if args.max_scenes is not None and n >= args.max_scenes:
                 break
-            scene = resize_scene(scene, args.size)
+            if args.only is not None and n not in {int(i) for i in args.only.split(",")}:
+                continue
+            scene = resize_scene(scene, args.size, args.frames)
             for bias in biases:
                 key = f"{group}-{n:03d}-bias-{bias}"
                 path = out / "runs" / f"{key}.json"

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from c4d.errors import UserError
-from c4d_pipeline.cli_eval_recon import read_tum_poses
+from c4d_pipeline.outputs import read_tum
 from datagen.geometry import invert_pose
 from dynpt.video_io import IMAGE_SUFFIXES
 
@@ -152,6 +152,11 @@ def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_diff: float = 0.02
     return sorted(pairs)
 
 
+def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (N,) and camera-to-world poses (N,4,4) of a TUM file `t tx ty tz qx qy qz qw`."""
+    return np.loadtxt(path, ndmin=2)[:, 0], read_tum(path)
+
+
 def _read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
     """TUM list file `timestamp filename` -> timestamps (N,), filenames."""
     rows = [line.split() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
@@ -198,10 +203,10 @@ def load_tum_dynamics(root: str | Path, sequences=None, stride: int = 3, count: 
         seq = root / name
         if (seq / "rgb_90").is_dir():  # already prepared by MonST3R's prepare_tum.py
             images = _images(seq / "rgb_90")
-            _, poses = read_tum_poses(_require(seq / "groundtruth_90.txt", "TUM", "SEQ/rgb_90 + SEQ/groundtruth_90.txt"))
+            _, poses = read_tum_trajectory(_require(seq / "groundtruth_90.txt", "TUM", "SEQ/rgb_90 + SEQ/groundtruth_90.txt"))
         else:
             stamps, files = _read_file_list(seq / "rgb.txt")
-            gt_stamps, gt_poses = read_tum_poses(_require(seq / "groundtruth.txt", "TUM", "SEQ/groundtruth.txt"))
+            gt_stamps, gt_poses = read_tum_trajectory(_require(seq / "groundtruth.txt", "TUM", "SEQ/groundtruth.txt"))
             matches = associate(stamps, gt_stamps)[::stride][:count]
             images = [seq / files[i] for i, _ in matches]
             poses = gt_poses[[j for _, j in matches]]
@@ -247,7 +252,7 @@ def load_bonn(root: str | Path, sequences=None, first: int = 30, last: int = 140
             raise UserError(f"Bonn {name}: {len(images)} frames but {len(depths)} depth images")
         poses = None
         if (seq / "groundtruth.txt").is_file():
-            gt_stamps, gt_poses = read_tum_poses(seq / "groundtruth.txt")
+            gt_stamps, gt_poses = read_tum_trajectory(seq / "groundtruth.txt")
             try:  # frames are named by their timestamps, as in TUM
                 matches = associate(np.array([float(p.stem) for p in images]), gt_stamps)
             except ValueError:

@@ -8,7 +8,10 @@ C4D's correspondence-guided mask, for every directed pair (t, t') of the scene g
   3. a fundamental matrix from these correspondences by LMedS (cv2.findFundamentalMat), refit
      by least squares on the LMedS inliers; it describes the camera motion only;
   4. the Sampson distance (pixels) of every dense flow correspondence of frame t to it, and a
-     threshold: pixels that break the epipolar constraint are dynamic;
+     threshold: pixels that break the epipolar constraint are dynamic. The threshold is
+     `sampson_threshold_px`, raised to `noise_sigmas` robust standard deviations of the static
+     points' own distances when the flow is noisier than that; pixels whose flow leaves frame t'
+     are not judged (their flow is unreliable) unless `judge_out_of_view`;
   5. the mask of frame t is the union over all pairs (t, t') of the graph (optionally only
      those with |t - t'| <= `max_pair_offset`, for flows that fail on distant frames).
 Fallbacks, each logged once per call and listed in `MotionMasks.pair_info`:
@@ -52,14 +55,14 @@ class MotionMaskConfig:
 
     mobility_threshold: float = 0.5  # a track is static at t where moving[t] < this
     min_confidence: float = 0.0  # ... and confidence[t] >= this
-    sampson_threshold_px: float = 1.0  # dynamic where the Sampson distance exceeds this (pixels)
+    sampson_threshold_px: float = 0.5  # dynamic where the Sampson distance exceeds this (pixels)
     min_static_points: int = 16  # fewer -> fall back to all flow correspondences
     fallback_grid_points: int = 2048  # about this many grid correspondences in the fallback
     still_camera_px: float = 0.25  # 90 % of static points move less: the camera stands still
     seed: int = 0  # seed of LMedS's random sampling
     max_pair_offset: int = 0  # use only graph pairs |i - j| <= this (0: all pairs, as the paper)
-    noise_sigmas: float = 0.0  # threshold >= this many robust sigmas of the static points' distances
-    judge_out_of_view: bool = True  # False: pixels whose flow leaves frame t' are never dynamic
+    noise_sigmas: float = 4.0  # threshold >= this many robust sigmas of the static points' distances
+    judge_out_of_view: bool = False  # False: pixels whose flow leaves frame t' are never dynamic
 
 
 @dataclass

@@ -21,7 +21,7 @@ from c4d_pipeline.alignment import initialise
 from c4d_pipeline.objectives import sample_points
 from c4d_pipeline.optimize import optimise
 from c4d_pipeline.outputs import Reconstruction, write_reconstruction
-from c4d_pipeline.pointmaps import PointmapSource
+from c4d_pipeline.pointmaps import PointmapSource, sanitize
 from c4d_pipeline.scene_graph import graph_from_config
 
 log = logging.getLogger(__name__)
@@ -95,6 +95,10 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
     dynpt's TrackResult (tracks (T,N,2), visible, confidence, moving (T,N), queries (N,3)) or None
     (flow-only masks, no PTS); cfg: a c4d config (configs/c4d/default.yaml); inputs: free-form
     description of the inputs for report.json.
+    Bad input: a source returning NaN/inf points gets those pixels ignored (warning); mismatched
+    frame counts or sizes between frames, pointmaps, flow and tracks raise `UserError`; a video
+    too short for the scene graph raises `UserError`; too few static points for a pair's
+    fundamental matrix falls back as documented in `c4d_pipeline.motion_mask`.
     """
     check_frames(frames)
     num_frames, h, w = frames.shape[:3]
@@ -104,6 +108,12 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
     start = time.perf_counter()
     edges = graph_from_config(num_frames, cfg.graph)
     pw = pointmap_source.pointmaps(frames, edges)
+    for view in ("i", "j"):  # NaN/inf points: ignored pixels (confidence 1), with a warning
+        pts, conf = getattr(pw, f"pts_{view}"), getattr(pw, f"conf_{view}")
+        if not (np.isfinite(pts).all() and np.isfinite(conf).all()):
+            fixed = sanitize(pts, conf)
+            setattr(pw, f"pts_{view}", fixed[0])
+            setattr(pw, f"conf_{view}", fixed[1])
     pw.validate(num_frames, (h, w))
     seconds["pointmaps"] = time.perf_counter() - start
 

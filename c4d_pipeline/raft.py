@@ -273,6 +273,8 @@ class RaftFlow:
 
         check_flow_inputs(frames, pairs)
         T, H, W = frames.shape[:3]
+        if len(pairs) == 0:
+            return np.zeros((0, H, W, 2), np.float32)
         # Pad (edge replication, centred) to multiples of 8 and at least 64 pixels, so that the
         # 4-level correlation pyramid keeps at least one cell at its coarsest level.
         pad_h, pad_w = max(-H % 8, 64 - H), max(-W % 8, 64 - W)

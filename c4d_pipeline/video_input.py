@@ -44,15 +44,6 @@ class Preprocessing:
                       [0, sy, 0.5 * sy - 0.5 - self.crop_xy[1]], [0, 0, 1]])
         return (A @ np.asarray(K, np.float64)).astype(np.float32)
 
-    def apply_nearest(self, maps: np.ndarray) -> np.ndarray:
-        """Per-frame maps (T,H,W[,C]) at source size (depth, masks) -> network size, nearest sampling."""
-        h, w = self.resized_hw
-        rows = np.minimum(((np.arange(h) + 0.5) * self.source_hw[0] / h).astype(int), self.source_hw[0] - 1)
-        cols = np.minimum(((np.arange(w) + 0.5) * self.source_hw[1] / w).astype(int), self.source_hw[1] - 1)
-        resized = maps[:, rows][:, :, cols]
-        x0, y0 = self.crop_xy
-        return resized[:, y0:y0 + self.output_hw[0], x0:x0 + self.output_hw[1]]
-
 
 def plan_preprocessing(source_hw: tuple[int, int], size: int, square_ok: bool = False) -> Preprocessing:
     """The resize and centre crop DUSt3R applies to an image of `source_hw` (H, W) for `size`."""

@@ -30,9 +30,9 @@ import datagen
 from c4d.config import available_presets, load_config, parse_overrides, to_dict
 from c4d.errors import UserError
 from c4d.system import require_egl
-from datagen.jobs import ShardPlan, resolve_task
-from datagen.shards import FORMAT_VERSION, ShardWriter, disk_error, encode_scene, scene_key
-from datagen.shards import write_json_atomic
+from datagen.jobs import SHARD_PATTERN, ShardPlan, resolve_task
+from datagen.shards import FORMAT_VERSION, KEY_PATTERN, ShardWriter, disk_error, encode_scene
+from datagen.shards import scene_key, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -46,29 +46,27 @@ def usable_cpus() -> int:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     presets = ", ".join(available_presets("datagen")) or "none yet"
-    parser.add_argument("--preset", default="movi-e", help=f"scene recipe ({presets}) or a YAML path")
-    parser.add_argument("--num-scenes", type=int, required=True, help="scenes in the dataset (all tasks)")
-    parser.add_argument("--out", type=Path, required=True, help="output directory of the shards")
-    parser.add_argument("--seed", type=int, help="dataset seed (config key `seed`)")
-    parser.add_argument(
-        "--workers", type=int, default=usable_cpus(),
-        help="worker processes (default: all usable CPU cores)",
-    )
-    parser.add_argument("--resolution", help="frame size: `256` (square) or `HxW` such as 384x512")
-    parser.add_argument("--frames", type=int, help="frames per video (config key `frames`)")
-    parser.add_argument("--scenes-per-shard", type=int, default=32, help="scenes per .tar shard")
-    parser.add_argument("--split", choices=("train", "val", "test"), help="asset split and file prefix")
-    parser.add_argument("--assets", help="folder of textured OBJ/GLB/GLTF meshes (config key `assets_dir`)")
-    parser.add_argument(
-        "--config", action="append", default=[], metavar="FILE",
-        help="YAML file merged over the preset (repeatable)",
-    )
-    parser.add_argument("--task-index", type=int, help="this task's index in a job array (from 0)")
-    parser.add_argument(
-        "--num-tasks", type=int,
-        help="tasks in the job array; default from SLURM_ARRAY_TASK_ID/COUNT or RANK/WORLD_SIZE",
-    )
-    parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    add = parser.add_argument
+    add("--preset", default="movi-e", help=f"scene recipe ({presets}) or a YAML path")
+    add("--num-scenes", type=int, required=True, metavar="N",
+        help="scenes in the dataset (all tasks)")
+    add("--out", type=Path, required=True, metavar="DIR", help="output directory of the shards")
+    add("--seed", type=int, metavar="S", help="dataset seed (config key `seed`)")
+    add("--workers", type=int, default=usable_cpus(), metavar="K",
+        help="worker processes (default: all usable CPU cores)")
+    add("--resolution", metavar="R", help="frame size: `256` (square) or `HxW` such as 384x512")
+    add("--frames", type=int, metavar="T", help="frames per video (config key `frames`)")
+    add("--scenes-per-shard", type=int, default=32, metavar="M",
+        help="scenes per .tar shard (default: 32)")
+    add("--split", choices=("train", "val", "test"), help="asset split and file prefix")
+    add("--assets", metavar="DIR",
+        help="folder of textured OBJ/GLB/GLTF meshes (config key `assets_dir`)")
+    add("--config", action="append", default=[], metavar="FILE",
+        help="YAML file merged over the preset (repeatable)")
+    add("--task-index", type=int, metavar="I", help="this task's index in a job array (from 0)")
+    add("--num-tasks", type=int, metavar="K",
+        help="tasks in the job array; default from SLURM_ARRAY_TASK_ID/COUNT or RANK/WORLD_SIZE")
+    add("overrides", nargs="*", metavar="key=value", help="config overrides")
 
 
 def parse_resolution(text: str) -> list[int]:
@@ -81,7 +79,9 @@ def parse_resolution(text: str) -> list[int]:
     if len(parts) == 1:
         size = size * 2
     if len(size) != 2 or min(size) < 8:
-        raise UserError(f"--resolution {text!r} must be `S` or `HxW` with sizes of at least 8, e.g. 384x512")
+        raise UserError(
+            f"--resolution {text!r} must be `S` or `HxW` with sizes of at least 8, e.g. 384x512"
+        )
     return size
 
 
@@ -117,8 +117,8 @@ def dataset_record(cfg, plan: ShardPlan, preset: str) -> dict[str, Any]:
         "num_scenes": plan.num_scenes,
         "scenes_per_shard": plan.scenes_per_shard,
         "num_shards": plan.num_shards,
-        "shard_pattern": "{split}-{shard:06d}.tar",
-        "scene_key_pattern": "{split}-{scene_index:08d}",
+        "shard_pattern": SHARD_PATTERN,
+        "scene_key_pattern": KEY_PATTERN,
         "config": to_dict(cfg),
     }
 
@@ -140,7 +140,8 @@ def claim_directory(out: Path, record: dict[str, Any]) -> None:
                          if k not in ignore and record.get(k) != stored.get(k))
         if "config" in differs:
             old, new = stored.get("config", {}), record["config"]
-            differs += [f"config.{k}" for k in sorted(new.keys() | old.keys()) if old.get(k) != new.get(k)]
+            differs += [f"config.{k}" for k in sorted(new.keys() | old.keys())
+                        if old.get(k) != new.get(k)]
         if differs:
             raise UserError(
                 f"{out} already holds a different dataset ({path.name} differs in: "
@@ -157,7 +158,7 @@ _worker: dict[str, Any] = {}
 
 
 def _init_worker(cfg) -> None:
-    """Worker initializer: store the config; the assets load on the first scene (`_worker_sample`)."""
+    """Worker initializer: keep the config; the assets load with the first scene."""
     _worker["cfg"] = cfg
 
 
@@ -216,7 +217,8 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = load_config("datagen", args.preset, args.config, list(args.overrides) + flag_overrides(args))
+    overrides = list(args.overrides) + flag_overrides(args)
+    cfg = load_config("datagen", args.preset, args.config, overrides)
     plan = ShardPlan(str(cfg.split), args.num_scenes, args.scenes_per_shard)
     task_index, num_tasks = resolve_task(args.task_index, args.num_tasks)
     if args.workers < 1:
@@ -231,6 +233,9 @@ def run(args: argparse.Namespace) -> int:
     todo = plan.missing_shards(args.out, shards)
     indices = [i for shard in todo for i in plan.scenes_of(shard)]
     task = f"task {task_index} of {num_tasks}: " if num_tasks > 1 else ""
+    if not shards:
+        log.info("%sno shards to write: the dataset has only %d", task, plan.num_shards)
+        return 0
     if not indices:
         log.info("%s%d of %d shards already complete in %s; nothing to do",
                  task, len(shards), len(shards), args.out)
@@ -247,11 +252,11 @@ def run(args: argparse.Namespace) -> int:
                 with ShardWriter(args.out / plan.shard_name(shard)) as writer:
                     for index in plan.scenes_of(shard):
                         sample = next(samples)
-                        assert sample["__key__"] == scene_key(plan.split, index), "scenes out of order"
+                        assert sample["__key__"] == scene_key(plan.split, index), "out of order"
                         writer.write(sample)
                         bar.update()
     finally:
-        samples.close()  # stops the worker pool at once on an error or Ctrl-C
+        samples.close()  # on an error or Ctrl-C: cancel queued scenes, shut the workers down
     seconds = time.perf_counter() - start
     log.info("wrote %d scenes in %d shards to %s in %.0f s (%.2f scenes/s)",
              len(indices), len(todo), args.out, seconds, len(indices) / seconds)

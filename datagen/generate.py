@@ -44,7 +44,7 @@ def describe_and_simulate(cfg, scene_index: int, assets: AssetLibrary,
 
 def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
                    timings: dict | None = None) -> Scene:
-    """Generate scene `scene_index` of preset `cfg` (a DictConfig from `load_config("datagen", ...)`).
+    """Scene `scene_index` of preset `cfg` (a DictConfig from `load_config("datagen", ...)`).
 
     `assets`: a library from `load_asset_library(cfg)` to reuse across scenes (built if None).
     `timings`: if a dict is given, it receives seconds per stage (sample, physics, render, labels).

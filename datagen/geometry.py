@@ -48,7 +48,7 @@ def rotate_vectors(pose: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     return np.einsum("...ij,...j->...i", pose[..., :3, :3], vectors)
 
 
-# ----------------------------------------------------------------------------- quaternions (w,x,y,z)
+# ------------------------------------------------------------------ quaternions (w,x,y,z)
 
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:
@@ -153,7 +153,9 @@ def intrinsics_from_lens(focal_mm: float, sensor_mm: float, height: int, width: 
 
 
 def project(points_world: np.ndarray, intrinsics: np.ndarray, cam_to_world: np.ndarray):
-    """World points (...,3) -> pixels (...,2) as (x, y), and z-depth (...). K (...,3,3), pose (...,4,4).
+    """World points (...,3) -> pixels (...,2) as (x, y), and z-depth (...).
+
+    intrinsics (...,3,3), cam_to_world (...,4,4).
 
     Points behind the camera (z <= 0) get meaningless pixels; check z.
     """
@@ -169,7 +171,8 @@ def unproject(pixels: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
     """Pixels (...,2) with z-depth (...) -> world points (...,3)."""
     pixels = np.asarray(pixels, dtype=np.float64)
     ones = np.ones(pixels.shape[:-1] + (1,))
-    rays = np.einsum("...ij,...j->...i", np.linalg.inv(intrinsics), np.concatenate([pixels, ones], -1))
+    homogeneous = np.concatenate([pixels, ones], -1)  # (...,3)
+    rays = np.einsum("...ij,...j->...i", np.linalg.inv(intrinsics), homogeneous)  # z = 1
     return transform_points(cam_to_world, rays * np.asarray(depth, dtype=np.float64)[..., None])
 
 

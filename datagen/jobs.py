@@ -16,6 +16,8 @@ from typing import Mapping
 
 from c4d.errors import UserError
 
+SHARD_PATTERN = "{split}-{shard:06d}.tar"
+
 # (index variable, count variable, first-index variable or None), in order of preference.
 TASK_ENVIRONMENTS = (
     ("SLURM_ARRAY_TASK_ID", "SLURM_ARRAY_TASK_COUNT", "SLURM_ARRAY_TASK_MIN"),
@@ -46,7 +48,7 @@ class ShardPlan:
         return -(-self.num_scenes // self.scenes_per_shard)
 
     def shard_name(self, shard: int) -> str:
-        return f"{self.split}-{shard:06d}.tar"
+        return SHARD_PATTERN.format(split=self.split, shard=shard)
 
     def scenes_of(self, shard: int) -> range:
         """Scene indices of shard `shard`, in the order they are stored."""
@@ -54,11 +56,11 @@ class ShardPlan:
         return range(start, min(start + self.scenes_per_shard, self.num_scenes))
 
     def shards_of_task(self, task_index: int, num_tasks: int) -> list[int]:
-        """The shards task `task_index` of `num_tasks` writes (round-robin, so tasks stay balanced)."""
+        """The shards task `task_index` of `num_tasks` writes (round-robin: balanced tasks)."""
         return list(range(task_index, self.num_shards, num_tasks))
 
     def missing_shards(self, out_dir: str | Path, shards: list[int]) -> list[int]:
-        """Those of `shards` without a finished file in `out_dir` (a `.partial` file does not count)."""
+        """Those of `shards` without a finished file in `out_dir` (a `.partial` one is not)."""
         return [k for k in shards if not (Path(out_dir) / self.shard_name(k)).is_file()]
 
 

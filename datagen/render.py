@@ -94,15 +94,26 @@ def _sun_light_class():
     return SunLight
 
 
-@functools.lru_cache(maxsize=2)
-def _offscreen(width: int, height: int, shadow_map_size: int):
-    """One offscreen EGL context per worker process and image size, reused across scenes."""
+@functools.lru_cache(maxsize=1)
+def _offscreen():
+    """The worker process's one offscreen EGL context, resized for each scene.
+
+    Exactly one: deleting a pyrender renderer terminates the EGL display that all its contexts
+    share, which would break any other renderer of the process.
+    """
+    offscreen = _pyrender().OffscreenRenderer(1, 1)
+    offscreen._renderer._program_cache = _shader_cache_class()()  # pyrender has no public hook
+    return offscreen
+
+
+def _offscreen_for(width: int, height: int, shadow_map_size: int):
+    """The offscreen renderer, set to render (height, width) images with this shadow map size."""
     pyrender = _pyrender()
-    # pyrender sizes every shadow map and the shadow pass viewport from this module constant.
+    # pyrender sizes new shadow maps and the shadow pass viewport from this module constant.
     pyrender.renderer.SHADOW_TEX_SZ = shadow_map_size
     pyrender.light.SHADOW_TEX_SZ = shadow_map_size
-    offscreen = pyrender.OffscreenRenderer(width, height)
-    offscreen._renderer._program_cache = _shader_cache_class()()  # pyrender has no public hook
+    offscreen = _offscreen()
+    offscreen.viewport_width, offscreen.viewport_height = width, height
     return offscreen
 
 
@@ -115,9 +126,9 @@ def _frame_with_z(z_axis: np.ndarray) -> np.ndarray:
     return geometry.make_pose(np.stack([x, np.cross(z, x), z], axis=-1), np.zeros(3))
 
 
-def _textured_mesh(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, image: np.ndarray,
-                   roughness: float = 0.7):
-    """A pyrender mesh with a repeating texture; per-vertex normals from the triangle mesh."""
+def _textured_primitive(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
+                        image: np.ndarray, roughness: float = 0.7):
+    """A pyrender primitive with a repeating texture; per-vertex normals from the triangle mesh."""
     pyrender = _pyrender()
     normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
     texture = pyrender.Texture(
@@ -125,11 +136,10 @@ def _textured_mesh(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, imag
         sampler=pyrender.Sampler(wrapS=pyrender.GLTF.REPEAT, wrapT=pyrender.GLTF.REPEAT))
     material = pyrender.MetallicRoughnessMaterial(
         baseColorTexture=texture, metallicFactor=0.0, roughnessFactor=roughness, doubleSided=True)
-    primitive = pyrender.Primitive(positions=vertices.astype(np.float32),
-                                   normals=normals.astype(np.float32),
-                                   texcoord_0=uv.astype(np.float32), indices=faces.astype(np.int32),
-                                   material=material)
-    return pyrender.Mesh([primitive])
+    return pyrender.Primitive(positions=vertices.astype(np.float32),
+                              normals=normals.astype(np.float32),
+                              texcoord_0=uv.astype(np.float32), indices=faces.astype(np.int32),
+                              material=material)
 
 
 def object_mesh(asset: Asset, scale: float, texture_seed: int, uv_tiles: float,
@@ -143,7 +153,7 @@ def object_mesh(asset: Asset, scale: float, texture_seed: int, uv_tiles: float,
             vertices = vertices * scale
         else:
             uv = uv * uv_tiles
-    return _textured_mesh(vertices, faces, uv, image)
+    return _pyrender().Mesh([_textured_primitive(vertices, faces, uv, image)])
 
 
 def _grid_faces(rows: int, cols: int) -> np.ndarray:
@@ -154,9 +164,13 @@ def _grid_faces(rows: int, cols: int) -> np.ndarray:
                            np.stack([b, c, d], -1).reshape(-1, 3)])
 
 
-def backdrop_meshes(radius: float, floor_tile: float, floor_image: np.ndarray,
-                    dome_image: np.ndarray, equirect: bool, rings: int = 24, sectors: int = 96):
-    """Floor disk (z = 0) and dome wall (half sphere) of `radius`, as two pyrender meshes.
+def backdrop_mesh(radius: float, floor_tile: float, floor_image: np.ndarray,
+                  dome_image: np.ndarray, equirect: bool, rings: int = 24, sectors: int = 96):
+    """Floor disk (z = 0) and dome wall (half sphere) of `radius`: one pyrender mesh.
+
+    One mesh, so its two parts are always drawn in the same order (pyrender orders meshes at
+    equal distance by set iteration, which differs between processes; where floor and wall meet,
+    the order would decide pixels).
 
     Procedural backdrop: the floor texture repeats every `floor_tile` units and the wall texture
     wraps around. `equirect`: both show one equirectangular image (lower half on the floor,
@@ -173,16 +187,17 @@ def backdrop_meshes(radius: float, floor_tile: float, floor_image: np.ndarray,
                               np.outer(np.cos(elevation), np.sin(azimuth)),
                               np.outer(np.sin(elevation), np.ones(sectors + 1))], -1)  # (R,S,3)
     u = np.broadcast_to(azimuth / (2 * np.pi), (rings + 1, sectors + 1))
-    if equirect:  # v = 0 at the top of the image (zenith), 1 at the bottom (nadir)
-        floor_uv = np.stack([u, 1.0 - 0.5 * (r / radius)[:, None] + 0 * u], -1)
-        wall_uv = np.stack([u, 0.5 - elevation[:, None] / np.pi + 0 * u], -1)
+    if equirect:  # OpenGL texture v: 0 at the image's bottom row (nadir), 1 at its top (zenith)
+        floor_uv = np.stack([u, np.broadcast_to(0.5 * (r / radius)[:, None], u.shape)], -1)
+        wall_uv = np.stack([u, np.broadcast_to(0.5 + elevation[:, None] / np.pi, u.shape)], -1)
     else:
         floor_uv = floor[..., :2] / floor_tile
         wall_uv = np.stack([u * round(2 * np.pi * radius / (4 * floor_tile)),
                             wall[..., 2] / (4 * floor_tile)], -1)
     faces = _grid_faces(rings + 1, sectors + 1)
-    return (_textured_mesh(floor.reshape(-1, 3), faces, floor_uv.reshape(-1, 2), floor_image, 0.9),
-            _textured_mesh(wall.reshape(-1, 3), faces, wall_uv.reshape(-1, 2), dome_image, 1.0))
+    return _pyrender().Mesh([
+        _textured_primitive(floor.reshape(-1, 3), faces, floor_uv.reshape(-1, 2), floor_image, 0.9),
+        _textured_primitive(wall.reshape(-1, 3), faces, wall_uv.reshape(-1, 2), dome_image, 1.0)])
 
 
 class SceneRenderer:
@@ -192,7 +207,7 @@ class SceneRenderer:
                  assets: AssetLibrary, cfg):
         pyrender = _pyrender()
         self.height, self.width = description.height, description.width
-        self.renderer = _offscreen(self.width, self.height, int(cfg.lights.shadow_map_size))
+        self.renderer = _offscreen_for(self.width, self.height, int(cfg.lights.shadow_map_size))
         self.scene = pyrender.Scene(ambient_light=np.full(3, description.ambient),
                                     bg_color=np.zeros(4))
         self.object_nodes = []
@@ -210,9 +225,9 @@ class SceneRenderer:
         else:
             floor_image = dome_image = assets.background(description.background_id)
             equirect = True
-        backdrop = [self.scene.add(mesh) for mesh in backdrop_meshes(
+        backdrop = self.scene.add(backdrop_mesh(
             float(cfg.backdrop.dome_radius), float(cfg.backdrop.floor_tile), floor_image,
-            dome_image, equirect)]
+            dome_image, equirect))
         # pyrender casts shadows from every directional light when asked to, so only the sun is
         # directional; the fill is a distant point light with the same irradiance at the origin.
         self.shadows = False
@@ -240,7 +255,7 @@ class SceneRenderer:
                                            zfar=float(cfg.camera.zfar))
         self.camera_node = self.scene.add(camera)
         # Segment k (1-based) encoded as colour (k mod 256, k div 256, 0).
-        self.seg_colors = {node: np.zeros(3) for node in backdrop}
+        self.seg_colors = {backdrop: np.zeros(3)}
         self.seg_colors.update({node: np.array([k % 256, k // 256, 0])
                                 for k, node in enumerate(self.object_nodes, start=1)})
 
@@ -268,7 +283,10 @@ class SceneRenderer:
 
 
 def shutter_times(frame: int, shutter: float, num_samples: int) -> np.ndarray:
-    """Sub-frame times (num_samples,) evenly spread over a shutter of `shutter` frames at `frame`."""
+    """Sub-frame times (num_samples,) spread evenly over a shutter of `shutter` frames at `frame`.
+
+    The shutter is centred on the frame time, where the labels are.
+    """
     return frame + shutter * ((np.arange(num_samples) + 0.5) / num_samples - 0.5)
 
 

@@ -30,8 +30,9 @@ from c4d.errors import UserError
 from datagen.scene import Scene
 
 FORMAT_VERSION = 1
-ZLIB_LEVEL = 1  # level 6 saves < 5 % on float labels at half the encode speed (docs/perf)
+ZLIB_LEVEL = 1  # level 6 saves 3-7 % on float labels at half the encode speed (docs/perf)
 PNG_LEVEL = 1
+KEY_PATTERN = "{split}-{scene_index:08d}"
 
 # field -> (dtype, ndim) of the contract (docs/FORMAT.md); `objects` and `meta` are JSON.
 ARRAY_FIELDS: dict[str, tuple[np.dtype, int]] = {
@@ -64,7 +65,7 @@ def member_suffix(name: str) -> str:
 
 def scene_key(split: str, scene_index: int) -> str:
     """The webdataset key of a scene: no dots, sortable, e.g. `train-00000042`."""
-    return f"{split}-{scene_index:08d}"
+    return KEY_PATTERN.format(split=split, scene_index=scene_index)
 
 
 # --- arrays -------------------------------------------------------------------------------------
@@ -140,7 +141,7 @@ def decode_segmentation(data: bytes, num_frames: int) -> np.ndarray:
     """Inverse of `encode_segmentation`: int32 (T,H,W)."""
     image = _decode_png(data)
     if image.ndim != 2 or image.shape[0] % num_frames:
-        raise ValueError(f"segmentation image of shape {image.shape} does not hold {num_frames} frames")
+        raise ValueError(f"segmentation image {image.shape} does not hold {num_frames} frames")
     return image.astype(np.int32).reshape(num_frames, -1, image.shape[1])
 
 
@@ -216,7 +217,9 @@ def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) ->
     wanted = set(Scene.field_names()) if fields is None else set(fields)
     unknown = wanted - set(Scene.field_names())
     if unknown:
-        raise UserError(f"unknown Scene fields {sorted(unknown)}; choose from {Scene.field_names()}")
+        raise UserError(
+            f"unknown Scene fields {sorted(unknown)}; choose from {Scene.field_names()}"
+        )
     for required in ("intrinsics", "meta"):
         if member_suffix(required) not in sample:
             raise UserError(
@@ -372,7 +375,9 @@ def list_shards(source: str | Path | Sequence[str | Path], split: str | None = N
         shards = sorted(path.glob(f"{split}-*.tar" if split else "*.tar"))
         if not shards:
             which = f" of split {split!r}" if split else ""
-            raise UserError(f"no shards{which} in directory {path}; generate some with `c4d datagen`")
+            raise UserError(
+                f"no shards{which} in directory {path}; generate some with `c4d datagen`"
+            )
         splits = sorted({p.name.rsplit("-", 1)[0] for p in shards})
         if len(splits) > 1:
             raise UserError(
@@ -382,7 +387,9 @@ def list_shards(source: str | Path | Sequence[str | Path], split: str | None = N
         return shards
     if path.is_file():
         return [path]
-    raise UserError(f"shard source {text!r} does not exist; give a directory, a .tar shard or a glob")
+    raise UserError(
+        f"shard source {text!r} does not exist; give a directory, a .tar shard or a glob"
+    )
 
 
 def iter_samples(shard: str | Path) -> Iterator[dict[str, Any]]:

@@ -5,9 +5,10 @@ before the toss; then they get friction/restitution 0.5/0.5, their velocities ar
 tossed objects are placed among them and thrown. Poses are recorded at every physics step from the
 toss (time -1, in frames) to time T, so sub-frame poses for motion blur come straight from physics.
 
-Deviations from Kubric (documented in docs/FORMAT.md): collision shapes are convex hulls of the
-visual meshes (not VHACD decompositions), mass is density x hull volume at the object's scale (not
-the unscaled GSO mass), and settling ends early once every object is at rest.
+Deviations from Kubric: collision shapes are convex hulls of the visual meshes (not VHACD
+decompositions), mass is density x hull volume at the object's scale (not the unscaled GSO mass),
+settling uses extra damping and ends early once every object is nearly at rest, and the settled
+objects' angular velocities are zeroed along with their linear ones.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ class SimulationResult:
     settle_steps: int
 
     def poses_at(self, times: np.ndarray) -> np.ndarray:
-        """Object-to-world (K,len(times),4,4) at frame times in [-1, T], interpolated between steps."""
+        """Object-to-world (K,n,4,4) at n frame times in [-1, T], interpolated between steps."""
         steps = (np.asarray(times, dtype=np.float64) + 1.0) * self.steps_per_frame  # (n,)
         lo = np.clip(np.floor(steps).astype(int), 0, self.positions.shape[1] - 1)
         hi = np.minimum(lo + 1, self.positions.shape[1] - 1)

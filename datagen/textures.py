@@ -14,7 +14,7 @@ PATTERNS = ("checks", "stripes", "dots", "cells", "noise")
 
 
 def value_noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
-    """Smooth tileable noise in [0, 1], (size,size): a random (cells x cells) grid, cubic-upsampled."""
+    """Smooth tileable noise in [0, 1], (size,size): a random cells x cells grid, upsampled."""
     grid = rng.random((cells, cells)).astype(np.float32)
     # Pad by wrapping so the upsampled image tiles seamlessly.
     padded = np.pad(grid, 2, mode="wrap")

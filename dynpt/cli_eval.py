@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 from c4d.config import load_config
@@ -34,7 +35,8 @@ def run(args: argparse.Namespace) -> int:
     items, kind = load_source(args.data, cfg)
     result = evaluate_items(tracker, items, args.mode)
     title = f"{Path(args.data).name} ({args.mode})"
-    out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{Path(args.data).stem}-{args.mode}"
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
+    out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{args.mode}"
     info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": args.mode,
             "resolution": list(cfg.resolution), "num_tracks": cfg.num_tracks if kind == "shards" else None}
     json_path, md_path = write_report(result, out, title, info)

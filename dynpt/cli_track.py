@@ -25,6 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the random query points [0]")
     parser.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame [1]")
     parser.add_argument("--max-frames", type=int, help="use at most this many frames")
+    parser.add_argument("--max-points", type=int, help="track at most this many points jointly "
+                        "(bounds memory; default all together)")
     parser.add_argument("--no-backward", action="store_true",
                         help="track only forward from each query frame")
     parser.add_argument("--device", help="torch device (default: cuda if available, else cpu)")
@@ -46,8 +48,8 @@ def run(args: argparse.Namespace) -> int:
     from dynpt.inference import load_tracker
     from dynpt.video_io import read_video, write_video
 
-    if args.grid_size < 1:
-        raise UserError(f"--grid-size must be at least 1, got {args.grid_size}")
+    if args.grid_size < 1 or (args.max_points is not None and args.max_points < 1):
+        raise UserError("--grid-size and --max-points must be at least 1")
     video = read_video(args.video, stride=args.stride, max_frames=args.max_frames)
     queries = _read_queries(args.queries) if args.queries else None
     tracker = load_tracker(args.ckpt, args.device)
@@ -57,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
              "grid-sampled" if queries is None else len(queries), T, W, H, tracker.device)
     start = time.perf_counter()
     result = tracker.track(video, queries, grid_size=args.grid_size, seed=args.seed,
-                           backward=not args.no_backward)
+                           backward=not args.no_backward, max_points=args.max_points)
     seconds = time.perf_counter() - start
     log.info("tracked %d points in %.1f s (%.2f s per frame)", result.tracks.shape[1], seconds,
              seconds / T)

@@ -122,13 +122,20 @@ def evaluate_model(model, items: list[dict], eval_cfg, device, query_mode: str =
     return evaluate_items(Tracker(model, device), items, query_mode)
 
 
-def track_image(example: dict, num_frames: int = 4) -> np.ndarray:
-    """Predicted tracks on `num_frames` frames, coloured by predicted mobility: uint8 (H,W,3)."""
-    T = len(example["video"])
-    frames = np.linspace(0, T - 1, num_frames).round().astype(int)
-    drawn = draw_tracks(example["video"], example["tracks"], example["visible"],
-                        np.nan_to_num(example["moving"]), trail=4, legend=True)
-    return contact_sheet(drawn[frames], columns=num_frames, labels=[f"t={t}" for t in frames])
+def track_image(example: dict, num_frames: int = 4, min_height: int = 256) -> np.ndarray:
+    """Predicted tracks on `num_frames` frames, coloured by predicted mobility: uint8 (H,W,3).
+
+    Small videos are enlarged (nearest neighbour, integer factor) to about `min_height` first.
+    """
+    video, tracks = example["video"], example["tracks"]
+    k = max(1, min_height // video.shape[1])
+    if k > 1:
+        video = video.repeat(k, axis=1).repeat(k, axis=2)
+        tracks = (tracks + 0.5) * k - 0.5
+    frames = np.linspace(0, len(video) - 1, num_frames).round().astype(int)
+    drawn = draw_tracks(video[frames], tracks[frames], example["visible"][frames],
+                        np.nan_to_num(example["moving"][frames]), legend=True)
+    return contact_sheet(drawn, columns=num_frames, labels=[f"t={t}" for t in frames])
 
 
 def markdown_table(summary: dict, title: str) -> str:

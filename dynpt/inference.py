@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from c4d.errors import UserError
 from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
-from dynpt.model import DynPT, DynPTOutput
+from dynpt.model import DynPT
 from dynpt.query_sampling import sample_queries
 
 
@@ -87,7 +87,12 @@ class Tracker:
     """A DynPT model in eval mode on a device, tracking whole videos."""
 
     def __init__(self, model: DynPT, device: str | torch.device | None = None):
-        device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        try:
+            device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        except RuntimeError as exc:
+            raise UserError(f"unknown device {device!r}; use cpu, cuda or cuda:N") from exc
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise UserError(f"device {str(device)!r} requested but no CUDA GPU is available; use cpu")
         self.model = model.eval().to(device)
         self.device = device
 
@@ -109,19 +114,40 @@ class Tracker:
             out.append(x)
         return torch.cat(out)[None]
 
-    def _run(self, video: torch.Tensor, queries: np.ndarray) -> DynPTOutput:
+    def _run(self, video: torch.Tensor, queries: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Final coords (T,N,2), logits (T,N,3) (vis, conf, moving) and valid (T,N) of one pass."""
         q = torch.from_numpy(queries).to(self.device)[None]  # (1,N,3)
         with self._autocast():
-            return self.model(video, q, iters=self.model.config["eval_iters"])
+            out = self.model(video, q, iters=self.model.config["eval_iters"])
+        logits = torch.stack([out.vis_logits[-1], out.conf_logits[-1], out.moving_logits[-1]], -1)
+        return out.coords[-1][0].float(), logits[0].float(), out.valid[0]
+
+    def _predict(self, video: torch.Tensor, queries: np.ndarray, backward: bool):
+        """Forward pass, plus a pass over the reversed video for queries after frame 0."""
+        coords, logits, done = self._run(video, queries)  # (T,N,2), (T,N,3), (T,N)
+        later = np.nonzero(queries[:, 0] > 0)[0]
+        if backward and len(later):
+            rev = queries[later].copy()
+            rev[:, 0] = video.shape[1] - 1 - rev[:, 0]
+            b_coords, b_logits, _ = self._run(video.flip(1), rev)
+            idx = torch.from_numpy(later).to(self.device)
+            fill = ~done[:, idx, None]  # (T,n,1) frames before the query frame
+            coords[:, idx] = torch.where(fill, b_coords.flip(0), coords[:, idx])  # back in forward time
+            logits[:, idx] = torch.where(fill, b_logits.flip(0), logits[:, idx])
+            done[:, idx] = True
+        return coords, logits, done
 
     @torch.inference_mode()
-    def track(self, video, queries=None, grid_size: int = 20, seed: int = 0, backward: bool = True) -> TrackResult:
+    def track(self, video, queries=None, grid_size: int = 20, seed: int = 0, backward: bool = True,
+              max_points: int | None = None) -> TrackResult:
         """Track points through `video`, uint8 (T,H,W,3) numpy or torch.
 
         queries: float (N,3) as (t, x, y) in input pixels, or None for the paper's sampling on the
         first frame (per `grid_size` cell: max-gradient point + one random point, `seed`ed).
         backward: also track queries after frame 0 backward in time (else frames before a query
         frame keep the query position, visible False, confidence 0, moving NaN).
+        max_points: track at most this many points jointly (memory grows linearly with it);
+        None tracks all together (points inform each other through the transformer).
         """
         video = _check_video(video)
         T, H, W = video.shape[:3]
@@ -137,24 +163,9 @@ class Tracker:
         scaled[:, 2] = (queries[:, 2] + 0.5) * sy - 0.5
         frames = self._video_tensor(video, (h, w))  # (1,T,3,h,w) uint8
 
-        out = self._run(frames, scaled)
-        coords = out.coords[-1][0].float()  # (T,N,2)
-        logits = torch.stack([out.vis_logits[-1], out.conf_logits[-1], out.moving_logits[-1]], -1)[0].float()
-        done = out.valid[0].clone()  # (T,N)
-        later = np.nonzero(queries[:, 0] > 0)[0]
-        if backward and len(later):
-            rev = scaled[later].copy()
-            rev[:, 0] = T - 1 - rev[:, 0]
-            back = self._run(frames.flip(1), rev)
-            b_coords = back.coords[-1][0].float().flip(0)  # (T,n,2) back in forward time
-            b_logits = torch.stack([back.vis_logits[-1], back.conf_logits[-1], back.moving_logits[-1]],
-                                   -1)[0].float().flip(0)
-            idx = torch.from_numpy(later).to(self.device)
-            fill = ~done[:, idx]  # (T,n) frames before the query frame
-            coords[:, idx] = torch.where(fill[..., None], b_coords, coords[:, idx])
-            logits[:, idx] = torch.where(fill[..., None], b_logits, logits[:, idx])
-            done[:, idx] = True
-
+        chunk = max_points or len(queries)
+        parts = [self._predict(frames, scaled[i:i + chunk], backward) for i in range(0, len(queries), chunk)]
+        coords, logits, done = (torch.cat(p, dim=1) for p in zip(*parts))  # (T,N,...)
         coords[..., 0] = (coords[..., 0] + 0.5) / sx - 0.5
         coords[..., 1] = (coords[..., 1] + 0.5) / sy - 0.5
         prob = torch.sigmoid(logits)  # (T,N,3)

@@ -156,6 +156,27 @@ class DynPT(nn.Module):
             history.append((coords, logits))
         return history
 
+    @staticmethod
+    def _initial_state(xy_q, t_q, S: int, start: int, prev: dict | None):
+        """Starting coords (B,S,N,2) and logits (B,S,N,3) of the window beginning at `start`.
+
+        Tracks not yet running start at their query point with zero logits. Tracks the previous
+        window already covered (query frame before its end) continue from its final prediction
+        on the shared frames; the last shared value is repeated over the new frames.
+        """
+        B, N = t_q.shape
+        coords = xy_q[:, None].expand(B, S, N, 2).clone()
+        logits = coords.new_zeros(B, S, N, 3)  # vis, conf, moving
+        if prev is None:
+            return coords, logits
+        started = (t_q < prev["end"])[:, None, :, None]  # (B,1,N,1)
+        shared = prev["end"] - start
+        carried = []
+        for x in (prev["coords"], prev["logits"]):
+            x = x[:, S - shared:]  # (B,shared,N,D)
+            carried.append(torch.cat([x, x[:, -1:].expand(-1, S - shared, -1, -1)], dim=1))  # (B,S,N,D)
+        return torch.where(started, carried[0], coords), torch.where(started, carried[1], logits)
+
     def forward(self, video: torch.Tensor, queries: torch.Tensor, iters: int | None = None) -> DynPTOutput:
         """Track `queries` through `video`.
 
@@ -186,7 +207,7 @@ class DynPT(nn.Module):
             frames = 2 * (video[:, idx].flatten(0, 1).float() / 255.0) - 1
             return F.pad(frames, (0, pw, 0, ph), mode="replicate")
 
-        levels, radius = c["corr_levels"], c["corr_radius"]
+        levels = c["corr_levels"]
         query_feats = None  # per level (B,N,P,C); zero until the track's query frame is reached
         sampled = torch.zeros(B, N, dtype=torch.bool, device=video.device)
         fmaps, fmaps_start, prev, pieces = None, 0, None, []
@@ -217,18 +238,7 @@ class DynPT(nn.Module):
                 )
                 sampled = sampled | arriving
 
-            coords = xy_q[:, None].expand(B, S, N, 2).clone()  # (B,S,N,2)
-            logits = coords.new_zeros(B, S, N, 3)  # vis, conf, moving
-            if prev is not None:  # tracks already running: continue from the previous window
-                started = (t_q < prev["end"])[:, None, :, None]  # (B,1,N,1)
-                shared = prev["end"] - start
-                carried_xy = prev["coords"][:, S - shared:]  # (B,shared,N,2)
-                carried_lg = prev["logits"][:, S - shared:]
-                carried_xy = torch.cat([carried_xy, carried_xy[:, -1:].expand(B, S - shared, N, 2)], 1)
-                carried_lg = torch.cat([carried_lg, carried_lg[:, -1:].expand(B, S - shared, N, 3)], 1)
-                coords = torch.where(started, carried_xy, coords)
-                logits = torch.where(started, carried_lg, logits)
-
+            coords, logits = self._initial_state(xy_q, t_q, S, start, prev)
             history = self._refine(pyramid, query_feats, coords, logits, iters)
             pieces.append([(xy[:, :own], lg[:, :own]) for xy, lg in history])
             xy_last, lg_last = history[-1]

@@ -155,3 +155,18 @@ def test_max_pair_offset_keeps_only_pairs_of_near_frames(scene, graph):
     used = [tuple(info["pair"]) for info in result.pair_info]
     assert used == [p for p in pairs if abs(p[0] - p[1]) == 1] and len(used) < len(pairs)
     assert mask_iou(result.masks, ground_truth_motion_masks(scene))["iou"] > 0.9
+
+
+def test_flow_leaving_the_frame_is_not_judged_and_noise_raises_the_threshold(scene, graph):
+    pairs, flows = graph
+    flow, (i, _) = flows[0].copy(), pairs[0]
+    flow[:, :6] = (-40.0, 13.0)  # nonsense flow pointing out of the frame on the left border
+    static = oracle_tracks(scene).tracks[i][oracle_tracks(scene).moving[i] < 0.5]
+    static = static[static[:, 0] > 8]  # the static points themselves are fine
+    judged, _ = pair_motion_mask(flow, static, MotionMaskConfig(judge_out_of_view=True))
+    skipped, info = pair_motion_mask(flow, static, MotionMaskConfig(judge_out_of_view=False))
+    assert judged[:, :6].all() and not skipped[:, :6].any()
+    assert info["threshold_px"] == MotionMaskConfig().sampson_threshold_px  # exact flow: no noise
+    noisy = flows[0] + np.random.default_rng(1).normal(0, 1.0, flows[0].shape)
+    _, info = pair_motion_mask(noisy, static, MotionMaskConfig(noise_sigmas=4.0))
+    assert info["threshold_px"] == pytest.approx(4.0 * info["sigma_px"]) and info["threshold_px"] > 1.0

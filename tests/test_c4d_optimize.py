@@ -117,3 +117,15 @@ def test_bad_inputs_are_user_errors_or_ignored(case):
     nan_flows[:, :4] = np.nan
     res = opt.optimise(pw, T, cfg, flows=nan_flows, static_masks=np.zeros((T, H, W), bool))
     assert np.isfinite(res.cam_to_world).all()  # no static pixel at all: CMA contributes nothing
+
+
+def test_ablation_runs_every_variant_on_one_scene():
+    from c4d_pipeline.ablation import VARIANTS, ablate_scene, resize_scene
+
+    scene = resize_scene(make_box_scene(num_frames=8, height=24, width=32, num_tracks=48, seed=2), 16, frames=6)
+    assert scene.rgb.shape == (6, 12, 16, 3) and scene.tracks.shape[1] == 6
+    out = ablate_scene(scene, "tiny", ["graph.window=2", "optim.stage1_iters=3", "optim.stage2_iters=2",
+                                       "pts.window=3", "pts.extend=1"], True, "gt", "c4d")
+    for variant in VARIANTS:
+        assert np.isfinite(out[variant]["ate"]) and 0 < out[variant]["delta_1_25"] <= 1
+    assert 0 <= out["mask_iou"] <= 1

@@ -103,5 +103,12 @@ def test_reconstruct_writes_the_contract_table(tmp_path):
     with pytest.raises(UserError, match="frames"):
         reconstruct(scene.rgb, GroundTruthPointmaps(scene), build_flow("gt", scene=scene),
                     oracle_tracks(make_box_scene(num_frames=5, height=16, width=24)), cfg)
-    no_tracker = reconstruct(scene.rgb, GroundTruthPointmaps(scene), build_flow("gt", scene=scene), None, cfg)
+    class NanSource(GroundTruthPointmaps):
+        def pointmaps(self, frames, edges):
+            pw = super().pointmaps(frames, edges)
+            pw.pts_j[0, :3] = np.nan
+            return pw
+
+    no_tracker = reconstruct(scene.rgb, NanSource(scene), build_flow("gt", scene=scene), None, cfg)
+    assert np.isfinite(no_tracker.points).all()
     assert no_tracker.report["inputs"]["motion_masks"] == "flow-only" and no_tracker.tracks_world is None

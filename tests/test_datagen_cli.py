@@ -31,6 +31,16 @@ def shard_files(out):
     return sorted(p.name for p in out.iterdir() if p.name.endswith((".tar", ".partial")))
 
 
+@pytest.fixture(scope="module", autouse=True)
+def no_job_array():
+    """Run as a single task even where the test suite itself runs inside SLURM or torchrun."""
+    with pytest.MonkeyPatch.context() as patch:
+        for name in ("SLURM_ARRAY_TASK_ID", "SLURM_ARRAY_TASK_COUNT", "SLURM_ARRAY_TASK_MIN",
+                     "RANK", "WORLD_SIZE"):
+            patch.delenv(name, raising=False)
+        yield
+
+
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     """4 scenes in 2 shards, one worker: the reference the other tests compare with."""
@@ -135,6 +145,13 @@ def test_bad_input_is_a_user_error(tmp_path, capsys, extra, expected):
     assert main(datagen_args(tmp_path / "out", *extra)) == 2
     assert expected in capsys.readouterr().err
     assert not (tmp_path / "out").exists() or shard_files(tmp_path / "out") == []
+
+
+def test_task_without_shards_does_nothing(tmp_path, monkeypatch):
+    monkeypatch.setenv("SLURM_ARRAY_TASK_ID", "5")
+    monkeypatch.setenv("SLURM_ARRAY_TASK_COUNT", "6")
+    assert main(datagen_args(tmp_path)) == 0  # 2 shards, 6 tasks: task 5 has none
+    assert shard_files(tmp_path) == [] and (tmp_path / "dataset-train.json").is_file()
 
 
 def test_missing_egl_is_a_user_error(tmp_path, monkeypatch, capsys):

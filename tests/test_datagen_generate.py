@@ -4,6 +4,11 @@ Each scene is generated once per module; the tests check that the labels agree w
 and with the rendered depth and segmentation, as exact geometry says they must.
 """
 
+import hashlib
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -166,6 +171,30 @@ def test_generation_is_deterministic_per_seed_and_index(cfg, assets, scene):
     other = generate_scene(cfg, MOVIE_INDEX + 1, assets)
     assert other.meta["camera"] != scene.meta["camera"]
     assert not np.array_equal(other.rgb, scene.rgb)
+
+
+def scene_digest(scene: Scene) -> str:
+    digest = hashlib.sha1()
+    for name in Scene.field_names():
+        value = getattr(scene, name)
+        if isinstance(value, np.ndarray):
+            digest.update(value.tobytes())
+    return digest.hexdigest()
+
+
+def test_another_process_makes_the_identical_scene(scene):
+    """Nothing may depend on process state (hash order, caches, which scenes came before)."""
+    code = (
+        "import sys; sys.path.insert(0, 'tests');"
+        "from test_datagen_generate import *;"
+        "cfg = load_config('datagen', 'movi-e', overrides=TINY);"
+        "generate_scene(cfg, MOVIE_INDEX + 5);"  # a different scene first
+        "print(scene_digest(generate_scene(cfg, MOVIE_INDEX)))"
+    )
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip().splitlines()[-1] == scene_digest(scene)
 
 
 def test_movi_f_blur_is_the_mean_of_sub_frame_renders(assets):

@@ -43,6 +43,11 @@ def test_track_outputs_for_grid_sampling(tracker):
     assert result.visible[0].all()
     again = tracker.track(video, grid_size=20, seed=3)
     np.testing.assert_array_equal(result.tracks, again.tracks)  # deterministic
+    chunked = tracker.track(video, grid_size=20, seed=3, max_points=5)  # 4 groups tracked apart
+    assert chunked.tracks.shape == result.tracks.shape
+    np.testing.assert_array_equal(chunked.tracks[0], result.tracks[0])
+    single = tracker.track(video, result.queries[5:10])
+    np.testing.assert_allclose(chunked.tracks[:, 5:10], single.tracks, atol=1e-5)
 
 
 def test_later_queries_are_tracked_both_ways(tracker):
@@ -146,3 +151,11 @@ def test_c4d_track_end_to_end(tmp_path, capsys):
     assert main(["track", str(video_path), "--ckpt", str(tmp_path / "none.pt"), "--out", str(out)]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert load_tracker(ckpt).model.config["window_len"] == 8
+
+
+def test_unknown_or_missing_device_is_a_user_error():
+    with pytest.raises(UserError, match="unknown device"):
+        Tracker(make_model(), "tpu:7")
+    if not torch.cuda.is_available():
+        with pytest.raises(UserError, match="no CUDA"):
+            Tracker(make_model(), "cuda")

@@ -181,3 +181,27 @@ def test_correlation_samples_the_right_feature_cells():
     assert torch.allclose(out[0, :, :, 0, 0], fmap[0, :, :, 2:4, 2:4].mean((-1, -2)), atol=1e-6)
     q = sample_query_neighbourhoods(fmap, torch.tensor([[1]]), xy[:, 0], cell=4, radius=1)  # (B,N,9,C)
     assert torch.allclose(q[0, 0, 4], fmap[0, 1, :, 2, 3])  # exactly frame 1, no blending in time
+
+
+def test_tiny_model_learns_to_follow_a_translating_texture():
+    """A few optimiser steps on one clip: the position error must fall well below the start."""
+    T, H, W, N = 8, 40, 56, 16
+    g = torch.Generator().manual_seed(2)
+    low = torch.rand(1, 3, H // 6, (W + 2 * T) // 6, generator=g)
+    big = 255 * torch.nn.functional.interpolate(low, size=(H, W + 2 * T), mode="bicubic").clamp(0, 1)
+    video = torch.stack([big[0, :, :, 2 * T - 2 * t: 2 * T - 2 * t + W] for t in range(T)])[None]  # 2 px/frame right
+    q = torch.stack([torch.zeros(N), 4 + torch.rand(N, generator=g) * (W - 24),
+                     4 + torch.rand(N, generator=g) * (H - 8)], -1)[None]
+    gt = q[:, None, :, 1:] + torch.stack([2 * torch.arange(T).float(),
+                                          torch.zeros(T)], -1)[None, :, None]  # (1,T,N,2)
+    model = make_model(seed=0).train()
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    errors = []
+    for _ in range(25):
+        out = model(video, q)
+        loss = sum((c - gt).abs().mean() for c in out.coords)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        errors.append(float((out.coords[-1] - gt).norm(dim=-1).mean().detach()))
+    assert errors[0] > 3 and min(errors[-5:]) < 0.4 * errors[0], errors

@@ -58,7 +58,7 @@ def test_total_batch_must_split_evenly():
 
 
 def _balanced_d_acc(out_dir):
-    """Mean of D-ACC on moving and on static points, read from the eval JSON (chance = 0.5)."""
+    """Mean of D-ACC on moving and on static points, read from the eval JSON (chance: 0.5)."""
     s = json.loads((out_dir / "eval.json").read_text())["summary"]
     return 0.5 * (s["d_acc_moving"] + s["d_acc_static"]), s
 
@@ -82,4 +82,4 @@ def test_tiny_model_learns_on_generated_shards(tmp_path):
                  str(shards), "--config", "tiny-cpu", "--out", str(out),
                  "eval.resolution=[64,64]", "eval.num_tracks=64"]) == 0
     balanced, summary = _balanced_d_acc(out)
-    assert balanced > 0.65, summary
+    assert balanced > 0.6, summary  # an untrained model scores 0.5 (all static)

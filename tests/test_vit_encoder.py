@@ -1,6 +1,7 @@
 """DUSt3R ViT encoder: official key layout, 2-D RoPE, checkpoint reading without code execution."""
 
 import argparse
+import datetime
 import math
 
 import pytest
@@ -101,6 +102,17 @@ def test_official_file_round_trip(tmp_path, args_as):
     img = torch.rand(1, 3, 8, 8) * 2 - 1
     with torch.no_grad():
         torch.testing.assert_close(loaded(img)[0], enc(img)[0], atol=0, rtol=0)
+
+
+def test_training_checkpoint_with_other_objects_falls_back_to_full_unpickling(tmp_path, caplog):
+    enc = tiny_encoder(seed=4)
+    path = tmp_path / "train.pth"
+    torch.save({"model": enc.state_dict(), "args": argparse.Namespace(model="Net(enc_num_heads=2)"),
+                "started": datetime.date(2024, 1, 1)}, path)  # not allowed by weights_only=True
+    with caplog.at_level("WARNING"):
+        loaded = load_dust3r_encoder(path)
+    assert "full unpickler" in caplog.text
+    torch.testing.assert_close(loaded.enc_norm.weight, enc.enc_norm.weight)
 
 
 def test_bare_state_dict_with_module_prefix_loads(tmp_path):

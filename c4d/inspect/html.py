@@ -57,7 +57,10 @@ def image(path: str | os.PathLike, page_dir: Path, caption: str | None = None) -
 
 
 def video(path: str | os.PathLike, page_dir: Path, caption: str | None = None) -> str:
-    """A looping, muted, autoplaying <video> of a file relative to the page's folder."""
+    """A looping, muted, autoplaying <video> of a file relative to the page's folder (a GIF is
+    shown as an image, which browsers animate)."""
+    if Path(path).suffix.lower() == ".gif":
+        return image(path, page_dir, caption)
     src = _relative(path, page_dir)
     tag = f'<video src="{src}" controls loop muted autoplay playsinline></video>'
     return tag + (text(caption, "note") if caption else "")

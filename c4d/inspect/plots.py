@@ -100,7 +100,8 @@ def trajectory_plot(path: str | os.PathLike, positions: np.ndarray,
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
     for ax, (i, j, name) in zip(axes, ((0, 1, "top view (x, y)"), (0, 2, "side view (x, z)"))):
         if reference is not None:
-            ax.plot(reference[:, i], reference[:, j], "-o", color="#555555", ms=2, label="ground truth")
+            ax.plot(reference[:, i], reference[:, j], "-", color="#999999", lw=5, alpha=0.6,
+                    label="ground truth")  # wide, so it shows under a perfect estimate
         ax.plot(positions[:, i], positions[:, j], "-o", color="#cc3311", ms=2, label="estimated")
         ax.plot(positions[:1, i], positions[:1, j], "s", color="#cc3311", ms=6, label="first frame")
         ax.set_title(name, fontsize=10)

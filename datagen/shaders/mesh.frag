@@ -51,23 +51,26 @@ float lit_fraction(sampler2D shadow_map, mat4 light_matrix, float n_dot_l)
 {
     vec4 clip = light_matrix * vec4(frag_position, 1.0);
     vec3 coords = clip.xyz / clip.w * 0.5 + 0.5;
-    if (coords.z > 1.0 || any(lessThan(coords.xy, vec2(0.0))) || any(greaterThan(coords.xy, vec2(1.0)))) {
+    if (coords.z > 1.0 || any(lessThan(coords.xy, vec2(0.0)))
+            || any(greaterThan(coords.xy, vec2(1.0)))) {
         return 1.0;  // outside the shadow map's window: lit
     }
     // Slope-scaled depth bias: a surface tilted by theta from the light changes depth by
     // texel * tan(theta) across one shadow-map texel, and the 4 taps span about 1.5 texels.
     // The orthographic light matrix maps one scene unit to half the norm of its rows in [0, 1].
-    float units_to_uv = 0.5 * length(vec3(light_matrix[0][0], light_matrix[1][0], light_matrix[2][0]));
-    float units_to_depth = 0.5 * length(vec3(light_matrix[0][2], light_matrix[1][2], light_matrix[2][2]));
+    mat3 rows = transpose(mat3(light_matrix));  // rows[i] = row i of the rotation-scale part
+    float units_to_uv = 0.5 * length(rows[0]);
+    float units_to_depth = 0.5 * length(rows[2]);
     float texel_units = 1.0 / (float(textureSize(shadow_map, 0).x) * units_to_uv);
     float tan_theta = sqrt(1.0 - n_dot_l * n_dot_l) / max(n_dot_l, 0.2);
     float bias = texel_units * (0.5 + 1.5 * tan_theta) * units_to_depth;
     vec2 texel = 0.5 / vec2(textureSize(shadow_map, 0));
+    float depth = coords.z - bias;
     float lit = 0.0;
-    lit += coords.z - bias > texture(shadow_map, coords.xy + vec2(-texel.x, -texel.y)).r ? 0.0 : 1.0;
-    lit += coords.z - bias > texture(shadow_map, coords.xy + vec2(texel.x, -texel.y)).r ? 0.0 : 1.0;
-    lit += coords.z - bias > texture(shadow_map, coords.xy + vec2(-texel.x, texel.y)).r ? 0.0 : 1.0;
-    lit += coords.z - bias > texture(shadow_map, coords.xy + vec2(texel.x, texel.y)).r ? 0.0 : 1.0;
+    lit += step(depth, texture(shadow_map, coords.xy + vec2(-texel.x, -texel.y)).r);
+    lit += step(depth, texture(shadow_map, coords.xy + vec2(texel.x, -texel.y)).r);
+    lit += step(depth, texture(shadow_map, coords.xy + vec2(-texel.x, texel.y)).r);
+    lit += step(depth, texture(shadow_map, coords.xy + vec2(texel.x, texel.y)).r);
     return 0.25 * lit;
 }
 #endif
