@@ -58,9 +58,25 @@ def _chosen_subcommand(argv: list[str]) -> str | None:
     return next((a for a in argv if a in SUBCOMMANDS), None)
 
 
+def parse_arguments(argv: list[str]) -> argparse.Namespace:
+    """Parse `argv`; `key=value` overrides may stand anywhere, also after options.
+
+    argparse only gives a trailing `nargs="*"` positional the tokens right after the other
+    positionals, so stray `key=value` tokens are collected here and appended to `args.overrides`.
+    """
+    parser = build_parser(_chosen_subcommand(argv))
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        stray = [a for a in extra if a.startswith("-") or "=" not in a]
+        if stray or not hasattr(args, "overrides"):
+            parser.error(f"unrecognized arguments: {' '.join(stray or extra)}")
+        args.overrides = [*(args.overrides or []), *extra]
+    return args
+
+
 def run_subcommand(argv: list[str]) -> int:
     """Parse `argv` and run its subcommand; exceptions propagate (for callers such as `c4d demo`)."""
-    args = build_parser(_chosen_subcommand(argv)).parse_args(argv)
+    args = parse_arguments(argv)
     return int(importlib.import_module(SUBCOMMANDS[args.command][0]).run(args) or 0)
 
 

@@ -49,3 +49,17 @@ def test_main_returns_exit_code_in_process(tmp_path, capsys):
     code = main(["datagen", "--preset", "movi-z", "--num-scenes", "1", "--out", str(tmp_path)])
     assert code == 2
     assert "c4d: error:" in capsys.readouterr().err
+
+
+def test_overrides_may_follow_options():
+    from c4d.cli import parse_arguments
+
+    args = parse_arguments(["train", "--config", "tiny-cpu", "train.steps=3", "--resume", "seed=2"])
+    assert args.overrides == ["train.steps=3", "seed=2"] and args.resume
+    args = parse_arguments(["inspect", "data", "--out", "report", "samples=2"])
+    assert args.source == "data" and args.overrides == ["samples=2"]
+
+
+def test_stray_arguments_are_still_rejected():
+    result = run_c4d("train", "--config", "tiny-cpu", "--bogus")
+    assert result.returncode == 2 and "unrecognized arguments: --bogus" in result.stderr

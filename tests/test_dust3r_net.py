@@ -3,11 +3,14 @@
 import argparse
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from c4d.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet, load_dust3r, postprocess
+from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps, to_network_input
+from c4d_pipeline.pointmaps import PointmapSource
 
 TINY = dict(enc_embed_dim=32, enc_depth=2, enc_num_heads=2, dec_embed_dim=24, dec_depth=4, dec_num_heads=2)
 TINY_DPT = dict(dpt_layer_dims=(4, 8, 8, 16), dpt_feature_dim=8, dpt_last_dim=8)
@@ -138,3 +141,24 @@ def test_bad_checkpoints_give_user_errors(tmp_path):
         load_dust3r(incomplete)
     with pytest.raises(UserError, match="does not exist"):
         load_dust3r(tmp_path / "nope.pth")
+
+
+def test_pointmap_source_runs_the_requested_pairs_in_batches():
+    net = tiny_net("dpt", seed=6)
+    frames = np.random.default_rng(0).integers(0, 256, (3, 32, 48, 3), dtype=np.uint8)
+    edges = np.array([[0, 1], [2, 0], [1, 2]])
+    source = Dust3rPointmaps(net, device="cpu", batch_size=2)
+    assert isinstance(source, PointmapSource)
+    pw = source.pointmaps(frames, edges)
+    assert pw.pts_i.shape == (3, 32, 48, 3) and pw.conf_j.shape == (3, 32, 48) and (pw.conf_i >= 1).all()
+    images = to_network_input(frames)
+    assert images.min() >= -1 and images.max() <= 1
+    with torch.no_grad():
+        pts1, conf1, pts2, conf2 = net(images[2:3], images[0:1])  # edge (2, 0)
+    np.testing.assert_allclose(pw.pts_i[1], pts1[0].numpy(), atol=1e-5)
+    np.testing.assert_allclose(pw.pts_j[1], pts2[0].numpy(), atol=1e-5)
+    np.testing.assert_allclose(pw.conf_j[1], conf2[0].numpy(), atol=1e-5)
+    with pytest.raises(UserError, match="multiples of 16"):
+        source.pointmaps(frames[:, :30], edges)
+    with pytest.raises(UserError, match="outside"):
+        source.pointmaps(frames, np.array([[0, 3]]))
