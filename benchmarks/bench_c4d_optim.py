@@ -48,12 +48,15 @@ def one_case(frames: int, height: int, width: int, iters: int, threads: int, ove
     hist = res.history
     s1 = float(np.median(hist["losses"]["stage1"]["seconds"]))
     s2 = float(np.median(hist["losses"]["stage2"]["seconds"]))
+    c1 = float(np.median(hist["losses"]["stage1"]["cpu_seconds"]))
+    c2 = float(np.median(hist["losses"]["stage2"]["cpu_seconds"]))
     return {
         "frames": frames, "size": f"{width}x{height}", "edges": len(edges), "iters_measured": iters,
         "threads": threads, "overrides": overrides, "inputs_s": inputs_s,
         "init_s": hist["seconds"]["init"], "stage1_s_per_iter": s1, "stage1_s_300_extrapolated": 300 * s1,
         "pts_targets_s": hist["seconds"]["pts_targets"], "stage2_s_per_iter": s2,
-        "stage2_s_300_extrapolated": 300 * s2, "rss_after_inputs_gib": rss_inputs, "rss_peak_gib": rss_peak,
+        "stage2_s_300_extrapolated": 300 * s2, "stage1_cpu_s_per_iter": c1, "stage2_cpu_s_per_iter": c2,
+        "rss_after_inputs_gib": rss_inputs, "rss_peak_gib": rss_peak,
     }
 
 
@@ -69,6 +72,8 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="small sizes only")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3, help="runs of the small baseline pair")
+    parser.add_argument("--cases", default=None,
+                        help="only these cases, e.g. 24x96x128:5,24x384x512:1 (frames x H x W : iterations)")
     parser.add_argument("--one", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
@@ -76,6 +81,13 @@ def main() -> int:
         print(json.dumps(one_case(frames, height, width, iters, threads, args.one[5:])))
         return 0
     rows = []
+    if args.cases:
+        for case in args.cases.split(","):
+            dims, iters = case.split(":")
+            frames, height, width = map(int, dims.split("x"))
+            rows.append({**run_subprocess(frames, height, width, int(iters), args.threads, []), "label": "default"})
+        print(json.dumps(rows))
+        return 0
     # baseline comparison (same run): edge chunking on vs off, small case, several repeats
     pair = {}
     for label, ov in (("chunked (edge_chunk=64)", []), ("unchunked (edge_chunk=0)", ["optim.edge_chunk=0"])):
@@ -87,12 +99,13 @@ def main() -> int:
     for frames, height, width in cases:
         iters = 5 if height <= 96 else 2
         rows.append({**run_subprocess(frames, height, width, iters, args.threads, []), "label": "default"})
-    print(f"{'case':34s} {'E':>4s} {'init s':>7s} {'st1 s/it':>9s} {'st1 x300*':>9s} "
-          f"{'PTS tgt s':>9s} {'st2 s/it':>9s} {'st2 x300*':>9s} {'RSS GiB':>8s}")
+    print(f"{'case':34s} {'E':>4s} {'init s':>7s} {'st1 s/it':>9s} {'st1 cpu/it':>10s} {'st1 x300*':>9s} "
+          f"{'PTS tgt s':>9s} {'st2 s/it':>9s} {'st2 cpu/it':>10s} {'RSS GiB':>8s}")
     for r in rows:
         print(f"{r['label'][:18]:18s} {r['frames']:3d}f {r['size']:>9s} {r['edges']:4d} {r['init_s']:7.2f} "
-              f"{r['stage1_s_per_iter']:9.3f} {r['stage1_s_300_extrapolated']:9.1f} {r['pts_targets_s']:9.2f} "
-              f"{r['stage2_s_per_iter']:9.3f} {r['stage2_s_300_extrapolated']:9.1f} {r['rss_peak_gib']:8.2f}")
+              f"{r['stage1_s_per_iter']:9.3f} {r['stage1_cpu_s_per_iter']:10.3f} "
+              f"{r['stage1_s_300_extrapolated']:9.1f} {r['pts_targets_s']:9.2f} "
+              f"{r['stage2_s_per_iter']:9.3f} {r['stage2_cpu_s_per_iter']:10.3f} {r['rss_peak_gib']:8.2f}")
     a, b = pair["chunked (edge_chunk=64)"], pair["unchunked (edge_chunk=0)"]
     print(f"* x300 = median measured seconds per iteration x 300 (extrapolated). threads={args.threads}")
     print(f"chunked / unchunked: stage-1 time {a['stage1_s_per_iter'] / b['stage1_s_per_iter']:.2f}x, "

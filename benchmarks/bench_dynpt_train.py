@@ -1,14 +1,17 @@
 """Benchmark of DynPT training: data pipeline throughput, train step time and peak memory.
 
 Usage:
-    python benchmarks/bench_dynpt_train.py [--shards DIR] [--workers 2] [--clips 120]
-        [--models tiny,full] [--steps 3] [--repeats 3]
+    python benchmarks/bench_dynpt_train.py [--shards DIR] [--format1-shards DIR] [--workers 2]
+        [--clips 120] [--models tiny,full] [--steps 3] [--repeats 3]
 
-- Data: clips/s of the training pipeline (decode, clip choice, augmentation, track sampling,
-  batching through a DataLoader) with `--workers` worker processes, on 24-frame 256x256 shards
-  with 256 tracks per clip (target >= 50 clips/s, so the loader never starves a GPU step); the
-  baseline in the same run is the same pipeline in the main process (0 workers). Without
-  --shards, 8 such scenes are generated first with `c4d datagen` (takes a minute or two).
+- Data: clips/s of the training pipeline (read, decode, clip choice, augmentation, track
+  sampling, batching through a DataLoader) with `--workers` worker processes, on 24-frame
+  256x256 shards with 256 tracks per clip (target >= 50 clips/s, so the loader never starves a
+  GPU step), and the CPU ms per clip of the same pipeline in the main process (0 workers; load
+  independent: 50 clips/s from 2 workers needs <= 40 ms). Baselines in the same run: the main
+  process (0 workers), and with --format1-shards the same scenes in format 1 (rgb as PNG; make
+  them with an older `c4d datagen`), read the old way (every member) and the new way (only the
+  members training uses). Without --shards, 8 scenes are generated first with `c4d datagen`.
 - Train step: median seconds per optimiser step (forward, loss, backward, AdamW) and the peak
   resident memory of a fresh process, for the `tiny-cpu` model and the paper's `full` model
   (frozen ViT-L with random weights, as no DUSt3R file is needed to time it), both on the same
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -28,6 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import cv2
 import torch
 
 from c4d.config import load_config
@@ -40,39 +45,50 @@ MODELS = {  # name -> (preset, overrides)
 }
 
 
-def data_throughput(shards: str, workers: int, clips: int, repeats: int) -> list[float]:
-    """clips/s of the training DataLoader over `shards` (24 frames, 256x256, 256 tracks)."""
+def data_throughput(shards: str, workers: int, clips: int, repeats: int) -> tuple[list, list]:
+    """clips/s and CPU ms/clip (of this process) of the training DataLoader over `shards`.
+
+    24 frames, 256x256 crops, 256 tracks; CPU ms/clip counts this process only, so it is the
+    whole pipeline's cost with 0 workers and the batch hand-over's with workers.
+    """
     from dynpt.data import ShardStream, make_loader
 
     cfg = load_config("dynpt", "paper-gpu", overrides=[
         "data.crop_size=[256,256]", "data.num_tracks=256", "data.num_frames=24",
         "data.max_stride=1", "data.shuffle_buffer=4"]).data
-    rates = []
+    rates, cpu_ms = [], []
     for r in range(repeats):
         loader = make_loader(ShardStream([shards], [1.0], cfg, seed=r), 4, workers)
         it = iter(loader)
         next(it)  # worker start-up is not throughput
-        start, seen = time.perf_counter(), 0
+        start, cpu, seen = time.perf_counter(), time.process_time(), 0
         while seen < clips:
             seen += len(next(it)["video"])
         rates.append(seen / (time.perf_counter() - start))
+        cpu_ms.append((time.process_time() - cpu) / seen * 1e3)
         del it, loader
-    return rates
+    return rates, cpu_ms
 
 
-def decode_rate(shards: str, repeats: int) -> list[float]:
-    """scenes/s of `decode_scene` alone (rgb PNG + labels) in this process: the pipeline's floor."""
+def read_decode_ms(shards: str, repeats: int, only_training_members: bool) -> list[float]:
+    """CPU ms per scene to read a scene's tar members and `decode_scene` its training fields."""
     from datagen.shards import decode_scene, iter_samples, list_shards
     from dynpt.data import TRAIN_FIELDS
 
-    raw = [s for shard in list_shards(shards) for s in iter_samples(shard)]
-    rates = []
+    members = TRAIN_FIELDS if only_training_members else None
+    times = []
     for _ in range(repeats):
-        start = time.perf_counter()
-        for sample in raw:
-            decode_scene(sample, TRAIN_FIELDS)
-        rates.append(len(raw) / (time.perf_counter() - start))
-    return rates
+        start, count = time.process_time(), 0
+        for shard in list_shards(shards):
+            for sample in iter_samples(shard, members):
+                decode_scene(sample, TRAIN_FIELDS)
+                count += 1
+        times.append((time.process_time() - start) / count * 1e3)
+    return times
+
+
+def _runs(values: list[float], digits: int = 1) -> str:
+    return f"{statistics.median(values):.{digits}f} (runs {[round(v, digits) for v in values]})"
 
 
 def step_times(model: str, steps: int, clip: str) -> dict:
@@ -111,6 +127,7 @@ def step_times(model: str, steps: int, clip: str) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shards", help="24-frame 256x256 shard set (default: generate 8 scenes)")
+    parser.add_argument("--format1-shards", help="the same scenes in shard format 1 (rgb PNG)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--clips", type=int, default=120, help="clips timed per repeat")
     parser.add_argument("--repeats", type=int, default=3)
@@ -123,8 +140,10 @@ def main() -> None:
         print(json.dumps(step_times(args.only_steps, args.steps, args.clip)))
         return
 
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average "
+          f"{' '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} cores")
     if args.clips > 0:
+        cv2.setNumThreads(1)  # as in the loader workers, so 0 workers measures one core's work
         shards = args.shards
         if not shards:
             from c4d.cli import main as c4d_main
@@ -132,15 +151,19 @@ def main() -> None:
             shards = str(Path(tempfile.mkdtemp(prefix="bench-dynpt-")) / "shards")
             c4d_main(["datagen", "--num-scenes", "8", "--out", shards, "--resolution", "256",
                       "--frames", "24", "--scenes-per-shard", "4"])
-        decode = decode_rate(shards, args.repeats)
-        print(f"decode only (PNG frames + labels), 1 process: {statistics.median(decode):.1f} "
-              f"scenes/s (runs {[round(r, 1) for r in decode]})")
-        base = data_throughput(shards, 0, args.clips // 2, args.repeats)
-        rates = data_throughput(shards, args.workers, args.clips, args.repeats)
-        print(f"data pipeline, 24x256x256, 256 tracks, batch 4: "
-              f"0 workers {statistics.median(base):.1f} clips/s (runs {[round(r, 1) for r in base]}); "
-              f"{args.workers} workers {statistics.median(rates):.1f} clips/s "
-              f"(runs {[round(r, 1) for r in rates]}); ratio {statistics.median(rates) / statistics.median(base):.2f}x")
+        sets = {"format 2": shards, "format 1": args.format1_shards}
+        for name, path in sets.items():
+            if not path:
+                continue
+            ways = [("training members", True)] + [("all members", False)] * (name == "format 1")
+            for way, only in ways:
+                print(f"read + decode_scene (training fields), {name}, {way}: "
+                      f"{_runs(read_decode_ms(path, args.repeats, only))} CPU ms/scene")
+            base, base_cpu = data_throughput(path, 0, args.clips // 4, args.repeats)
+            rates, _ = data_throughput(path, args.workers, args.clips, args.repeats)
+            print(f"data pipeline, {name}, 24x256x256, 256 tracks, batch 4: 0 workers "
+                  f"{_runs(base)} clips/s, {_runs(base_cpu)} CPU ms/clip; {args.workers} workers "
+                  f"{_runs(rates)} clips/s, ratio {statistics.median(rates) / statistics.median(base):.2f}x")
     results = []
     for model in [m for m in args.models.split(",") if m]:
         out = subprocess.run([sys.executable, __file__, "--only-steps", model, "--steps",

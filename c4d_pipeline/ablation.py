@@ -164,13 +164,13 @@ def main(argv: list[str] | None = None) -> int:
     from datagen import read_scenes
 
     load_config("c4d", args.preset, overrides=args.overrides)  # fail early on a bad override
-    out = Path(args.out)
-    (out / "runs").mkdir(parents=True, exist_ok=True)
     if not (args.dynamic or args.static):
         raise UserError("give --dynamic and/or --static scene shards (c4d datagen output)")
     biases = [b.strip() for b in args.bias.split(",")]
     if not set(biases) <= {"on", "off"}:
         raise UserError(f"--bias takes on, off or on,off; got {args.bias!r}")
+    out = Path(args.out)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
     runs, groups = {}, {}
     for group, source in (("dynamic", args.dynamic), ("static", args.static)):
         if not source:

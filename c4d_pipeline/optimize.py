@@ -71,8 +71,11 @@ class _Inputs:
         if flows is not None:
             flow = torch.from_numpy(np.ascontiguousarray(flows, dtype=np.float32)).reshape(e, -1, 2)
             finite = torch.isfinite(flow).all(-1)  # (E,P)
-            static = (torch.ones_like(finite) if static_masks is None else
-                      torch.from_numpy(np.asarray(static_masks, bool)).reshape(static_masks.shape[0], -1)[self.ei.cpu()])
+            if static_masks is None:
+                static = torch.ones_like(finite)
+            else:
+                per_frame = torch.from_numpy(np.asarray(static_masks, bool)).flatten(1)  # (T,P)
+                static = per_frame[self.ei.cpu()]  # (E,P) static in frame i of each edge
             self.flow = torch.nan_to_num(flow, 0.0, 0.0, 0.0).to(device)
             self.static = (static & finite).to(device)  # (E,P) static in frame i
             self.num_static = max(int(self.static.sum()), 1)
@@ -151,7 +154,7 @@ def _stage1_step(params: SceneParams, data: _Inputs, weights, cfg: _StepCfg, pix
 
 
 def _run_adam(params_list, steps, cfg, step_fn, stage: str, progress: bool) -> dict:
-    """Adam with the configured schedule; returns {loss name or 'seconds': [per-iteration values]}."""
+    """Adam with the configured schedule; returns {loss name, 'seconds', 'cpu_seconds': [per-iteration values]}."""
     opt = torch.optim.Adam(params_list, lr=cfg.lr, betas=tuple(cfg.betas))
     curves: dict[str, list[float]] = {}
     for it in tqdm(range(steps), desc=stage, disable=not progress, leave=False):
@@ -159,12 +162,13 @@ def _run_adam(params_list, steps, cfg, step_fn, stage: str, progress: bool) -> d
         for group in opt.param_groups:
             group["lr"] = lr
         opt.zero_grad(set_to_none=True)
-        tic = time.perf_counter()
+        tic, cpu_tic = time.perf_counter(), time.process_time()
         losses = step_fn()
         if not math.isfinite(losses["total"]):
             raise FloatingPointError(f"{stage}: loss became non-finite at iteration {it}")
         opt.step()
         losses["seconds"] = time.perf_counter() - tic
+        losses["cpu_seconds"] = time.process_time() - cpu_tic
         for name, value in losses.items():
             curves.setdefault(name, []).append(value)
     return curves

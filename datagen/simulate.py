@@ -76,6 +76,17 @@ def _max_speed(client: int, bodies: list[int]) -> float:
     return max(speeds)
 
 
+def _settle(client: int, bodies: list[int], max_frames: int, steps_per_frame: int,
+            speed: float) -> int:
+    """Step until every body is slower than `speed` (checked once per frame); returns the steps."""
+    for frame in range(max_frames):
+        for _ in range(steps_per_frame):
+            pb.stepSimulation(physicsClientId=client)
+        if _max_speed(client, bodies) < speed:
+            return (frame + 1) * steps_per_frame
+    return max_frames * steps_per_frame
+
+
 def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> SimulationResult:
     """Place, settle, toss and simulate; returns poses at every step from time -1 to time T."""
     steps_per_frame = int(round(cfg.physics.step_rate / description.fps))
@@ -109,22 +120,24 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
             add(i, cfg.objects.settle_friction, cfg.objects.settle_restitution,
                 cfg.physics.settle_damping)
 
-        # Settle the static objects, checking once per frame whether everything is at rest.
-        settle_steps = 0
-        for _ in range(int(cfg.physics.settle_frames)):
-            for _ in range(steps_per_frame):
-                pb.stepSimulation(physicsClientId=client)
-            settle_steps += steps_per_frame
-            if _max_speed(client, list(bodies.values())) < cfg.physics.settle_speed:
-                break
+        # Settle as Kubric does (friction 1, restitution 0), then give the static objects and the
+        # floor the video's friction, restitution and damping and let them come to rest again:
+        # a pile that friction 1 holds up may slide at the video's lower friction, and it must do
+        # so before the toss, not in the video.
+        statics = list(bodies.values())
+        settle_steps = _settle(client, statics, int(cfg.physics.settle_frames), steps_per_frame,
+                               cfg.physics.settle_speed)
         for i, body in bodies.items():
             spec = description.objects[i]
-            pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=client)
             pb.changeDynamics(body, -1, lateralFriction=spec.friction, restitution=spec.restitution,
                               linearDamping=cfg.physics.damping, angularDamping=cfg.physics.damping,
                               physicsClientId=client)
         pb.changeDynamics(floor, -1, lateralFriction=cfg.physics.floor_friction,
                           restitution=cfg.physics.floor_restitution, physicsClientId=client)
+        settle_steps += _settle(client, statics, int(cfg.physics.resettle_frames), steps_per_frame,
+                                cfg.physics.settle_speed)
+        for body in statics:
+            pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=client)
 
         for i, spec in enumerate(description.objects):
             if spec.tossed:

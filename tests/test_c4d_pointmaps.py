@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import torch
 
 from c4d.errors import UserError
 from c4d_pipeline.pointmaps import GroundTruthPointmaps, PairwisePointmaps, PointmapSource, sanitize
