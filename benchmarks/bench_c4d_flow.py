@@ -11,23 +11,14 @@ and the flow-only baseline (ego-flow from per-frame geometry, normalised error).
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import numpy as np
 
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.motion_mask import correspondence_motion_masks, ego_flow, flow_only_motion_masks, oracle_tracks
 from c4d_pipeline.synthetic import make_box_scene
+from timing import median_seconds
 
-
-def median_seconds(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def main() -> None:

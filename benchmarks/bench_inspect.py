@@ -14,9 +14,7 @@ Prints markdown tables of medians over `--repeats` runs.
 from __future__ import annotations
 
 import argparse
-import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,15 +22,8 @@ import numpy as np
 from c4d.inspect import dataset_report, point_render
 from c4d_pipeline.synthetic import make_box_scene
 from datagen import geometry, shards
+from timing import median_seconds
 
-
-def median_seconds(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def bench_statistics_pass(num_scenes: int, size: int, frames: int, repeats: int) -> None:

@@ -25,11 +25,12 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from matplotlib import colormaps
 from PIL import Image
 
 from c4d.errors import UserError
 from datagen import geometry
+from datagen.visualize import colorize_depth
+from datagen.shards import json_default
 
 
 @dataclass
@@ -81,13 +82,6 @@ def _save_npz(path: Path, **arrays: np.ndarray) -> None:
 def _save_text(path: Path, text: str) -> None:
     _atomic(path, lambda fh: fh.write(text.encode()))
 
-
-def colourise_depth(depth: np.ndarray) -> np.ndarray:
-    """uint8 (H,W,3) picture of a depth map (H,W): inverse depth through the turbo colour map."""
-    inv = 1.0 / np.maximum(depth, 1e-6)
-    lo, hi = np.percentile(inv, [1, 99])
-    norm = np.clip((inv - lo) / max(hi - lo, 1e-12), 0, 1)
-    return (colormaps["turbo"](norm)[..., :3] * 255).astype(np.uint8)
 
 
 def tum_lines(cam_to_world: np.ndarray) -> str:
@@ -144,15 +138,6 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return rows["xyz"].copy(), rows["rgb"].copy()
 
 
-def _json_default(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
 
 def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_stride: int = 2,
                          ply_static_frame_stride: int = 5, ply_min_confidence: float = 1.0) -> Path:
@@ -161,7 +146,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_str
     for t in range(rec.num_frames):
         _save_png(out / "frames" / f"{t:06d}.png", rec.frames[t])
         _save_npy(out / "depth" / f"{t:06d}.npy", rec.depth[t].astype(np.float32))
-        _save_png(out / "depth" / f"{t:06d}.png", colourise_depth(rec.depth[t]))
+        _save_png(out / "depth" / f"{t:06d}.png", colorize_depth(rec.depth[t]))
         _save_png(out / "masks" / f"{t:06d}.png", (rec.masks[t] * 255).astype(np.uint8))
     _save_text(out / "poses_tum.txt", tum_lines(rec.cam_to_world.astype(np.float64)))
     _save_npy(out / "intrinsics.npy", rec.intrinsics.astype(np.float32))
@@ -174,7 +159,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_str
                   valid=np.asarray(rec.tracks_valid, bool))
     pts, rgb = ply_points(rec, ply_pixel_stride, ply_static_frame_stride, ply_min_confidence)
     _atomic(out / "scene.ply", lambda fh: fh.write(_ply_bytes(pts, rgb)))
-    _save_text(out / "report.json", json.dumps(rec.report, indent=1, default=_json_default) + "\n")
+    _save_text(out / "report.json", json.dumps(rec.report, indent=1, default=json_default) + "\n")
     return out
 
 

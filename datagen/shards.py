@@ -173,7 +173,7 @@ def decode_segmentation(data: bytes, num_frames: int) -> np.ndarray:
 # --- JSON ---------------------------------------------------------------------------------------
 
 
-def _json_default(value: Any) -> Any:
+def json_default(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):
@@ -185,7 +185,7 @@ def _json_default(value: Any) -> Any:
 
 def to_json_bytes(value: Any) -> bytes:
     """UTF-8 JSON; numpy scalars and arrays become numbers and lists, tuples become lists."""
-    return json.dumps(value, default=_json_default, ensure_ascii=False).encode("utf-8")
+    return json.dumps(value, default=json_default, ensure_ascii=False).encode("utf-8")
 
 
 # --- scenes -------------------------------------------------------------------------------------
@@ -368,7 +368,7 @@ def write_json_atomic(path: str | Path, value: Any) -> None:
     partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
     try:
         with open(partial, "w", encoding="utf-8") as f:
-            json.dump(value, f, indent=2, default=_json_default)
+            json.dump(value, f, indent=2, default=json_default)
             f.write("\n")
             f.flush()
             os.fsync(f.fileno())

@@ -77,12 +77,15 @@ def _max_speed(client: int, bodies: list[int]) -> float:
 
 
 def _settle(client: int, bodies: list[int], max_frames: int, steps_per_frame: int,
-            speed: float) -> int:
-    """Step until every body is slower than `speed` (checked once per frame); returns the steps."""
+            speed: float, hold_frames: int = 1) -> int:
+    """Step until every body has been slower than `speed` at `hold_frames` frame ends in a row
+    (or `max_frames` have passed); returns the steps taken."""
+    still = 0
     for frame in range(max_frames):
         for _ in range(steps_per_frame):
             pb.stepSimulation(physicsClientId=client)
-        if _max_speed(client, bodies) < speed:
+        still = still + 1 if _max_speed(client, bodies) < speed else 0
+        if still == hold_frames:
             return (frame + 1) * steps_per_frame
     return max_frames * steps_per_frame
 
@@ -134,8 +137,9 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
                               physicsClientId=client)
         pb.changeDynamics(floor, -1, lateralFriction=cfg.physics.floor_friction,
                           restitution=cfg.physics.floor_restitution, physicsClientId=client)
+        import os
         settle_steps += _settle(client, statics, int(cfg.physics.resettle_frames), steps_per_frame,
-                                cfg.physics.settle_speed)
+                                cfg.physics.settle_speed, int(os.environ.get("HOLD", "1")))
         for body in statics:
             pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=client)
 

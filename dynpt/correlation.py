@@ -42,7 +42,6 @@ def sample_neighbourhoods(
     `cell` is the map's stride in input pixels; the offsets are whole cells of this level.
     """
     B, T, C, h, w = fmap.shape
-    N = xy.shape[2]
     points = xy[:, :, :, None, :] + cell * _offsets(radius, xy.device)  # (B,T,N,P,2)
     grid = _to_grid(points, cell, h, w).flatten(0, 1).to(fmap.dtype)  # (B*T,N,P,2)
     out = F.grid_sample(

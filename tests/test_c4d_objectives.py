@@ -11,13 +11,6 @@ from c4d_pipeline.alignment import estimate_focal, weighted_procrustes
 from c4d_pipeline.scene_params import pixel_rays, quat_to_rotation
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
 
 def rot_z(theta: float) -> torch.Tensor:
     c, s = math.cos(theta), math.sin(theta)

@@ -19,13 +19,6 @@ from c4d_pipeline.synthetic import make_box_scene
 T, H, W = 8, 24, 32
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
 
 @pytest.fixture(scope="module")
 def case():

@@ -4,7 +4,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from c4d.config import load_config
 from c4d.errors import UserError
@@ -17,13 +16,6 @@ from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from c4d_pipeline.synthetic import make_box_scene
 from datagen import geometry
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
 
 
 def random_reconstruction(rng, t=3, h=8, w=10, n=5) -> Reconstruction:

@@ -8,8 +8,8 @@ import torch
 from c4d.errors import UserError
 from dynpt.checkpoint import FORMAT, load_checkpoint, model_from_checkpoint, save_checkpoint
 from dynpt.inference import load_tracker
-from test_dynpt_model import (  # noqa: F401  (one_thread is an autouse fixture)
-    make_model, one_thread, random_queries, random_video, tiny_cfg, write_official_checkpoint,
+from test_dynpt_model import (
+    make_model, random_queries, random_video, tiny_cfg, write_official_checkpoint,
 )
 
 

@@ -10,7 +10,7 @@ from dynpt.checkpoint import save_checkpoint
 from dynpt.inference import Tracker, load_tracker
 from dynpt.query_sampling import sample_queries
 from dynpt.video_io import read_video, write_video
-from test_dynpt_model import make_model, one_thread  # noqa: F401  (one_thread: autouse fixture)
+from test_dynpt_model import make_model
 
 
 def smooth_video(T=7, H=41, W=57, seed=0):

@@ -12,15 +12,6 @@ from dynpt.model import build_model
 from dynpt.vit_encoder import Dust3rEncoder
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest single-threaded; on a shared 2-core machine two OpenMP threads can
-    be 100x slower (spin-waiting), so these tests pin torch to one thread and restore it after."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
 
 def tiny_cfg(*overrides):
     return load_config("dynpt/model", "tiny", overrides=overrides).model
