@@ -194,13 +194,13 @@ def summary_markdown(records: dict) -> str:
               f"{data['resolution'][0]}x{data['resolution'][1]}: " +
               ", ".join(f"`{p}`" for p in (*data["train"].values(), *data["val"].values())), "",
               "## Tracker (held-out val scenes, 'first' queries)", "",
-              "| val set | tracker | D-ACC | D-ACC moving | D-ACC static | AJ | <δ avg | OA |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| val set | tracker | D-ACC | D-ACC moving | D-ACC static | D-ACC balanced | AJ | <δ avg | OA |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for preset, result in records["eval"]["results"].items():
         for name, s in (("DynPT (trained here)", result["dynpt"]),
                         ("zero motion, all static", result["zero_motion"])):
             lines.append(f"| {preset} | {name} | " + " | ".join(_pct(s.get(k)) for k in (
-                "d_acc", "d_acc_moving", "d_acc_static", "average_jaccard",
+                "d_acc", "d_acc_moving", "d_acc_static", "d_acc_balanced", "average_jaccard",
                 "average_pts_within_thresh", "occlusion_accuracy")) + " |")
     rec = records["reconstruct"]
     lines += ["", f"Checkpoint: `{records['train']['checkpoint']}`; training log "

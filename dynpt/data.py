@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 from typing import Iterator, Sequence
 
+import cv2
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
@@ -53,7 +54,7 @@ def choose_clip(scene: Scene, num_frames: int, max_stride: int, rng: np.random.G
                         "computes 3-D tracks (tracks_world)")
     stride = int(rng.integers(1, max(1, min(max_stride, (total - 1) // max(num_frames - 1, 1))) + 1))
     start = int(rng.integers(0, total - (num_frames - 1) * stride))
-    frames = np.arange(start, start + num_frames * stride, stride)[:num_frames]  # (T,)
+    frames = slice(start, start + (num_frames - 1) * stride + 1, stride)  # T frames, views
     return {
         "rgb": scene.rgb[frames],
         "tracks": scene.tracks[:, frames].transpose(1, 0, 2),  # (T,N,2)
@@ -146,7 +147,7 @@ class ShardStream(IterableDataset):
         rng = _rng(self.seed, source, epoch, split, 1)
         index = 0
         for shard_id in mine:
-            for sample in iter_samples(shards[shard_id]):
+            for sample in iter_samples(shards[shard_id], TRAIN_FIELDS):
                 index += 1
                 if not by_shard and (index - 1) % num_splits != split:
                     continue
@@ -189,11 +190,18 @@ class ShardStream(IterableDataset):
                 yield {**sample, "position": np.array([split, num_splits] + state, np.int64)}
 
 
+def _init_worker(worker_id: int) -> None:
+    """One thread per loader worker: the workers already use every core between them."""
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
+
+
 def make_loader(stream: ShardStream, batch_size: int, num_workers: int) -> DataLoader:
     """A DataLoader over `stream`: batches come from workers in turn, so the order is fixed."""
     return DataLoader(stream, batch_size=batch_size, num_workers=num_workers,
                       persistent_workers=num_workers > 0, pin_memory=torch.cuda.is_available(),
-                      prefetch_factor=2 if num_workers > 0 else None)
+                      prefetch_factor=4 if num_workers > 0 else None,
+                      worker_init_fn=_init_worker if num_workers > 0 else None)
 
 
 class StreamPosition:

@@ -110,3 +110,15 @@ def test_eval_cli_writes_json_and_markdown(tmp_path, davis_pickle, capsys):
     summary = json.loads((out2 / "eval.json").read_text())["summary"]
     assert summary["num_videos"] == 2 and "d_acc" not in summary
     assert main(["eval", "--ckpt", str(tmp_path / "missing.pt"), "--data", str(shards)]) == 2
+
+
+def test_zero_motion_baseline_scores_all_static_and_half_balanced():
+    from dynpt.baselines import ZeroMotionBaseline
+
+    eval_cfg = load_config("dynpt", "tiny-cpu", overrides=[
+        "eval.resolution=[32,32]", "eval.num_tracks=8", "eval.num_scenes=2"]).eval
+    items, kind = load_source(str(synthetic_shards(12, 3)), eval_cfg)
+    s = evaluate_items(ZeroMotionBaseline(), items, "first")["summary"]
+    assert kind == "shards"
+    assert s["d_acc_static"] == 1.0 and s["d_acc_moving"] == 0.0 and s["d_acc_balanced"] == 0.5
+    assert 0 < s["d_acc"] < 1
