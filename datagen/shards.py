@@ -251,6 +251,12 @@ def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) ->
                 f"scene {key!r}{where} has no {member_suffix(required)!r} member, so the shard "
                 "is truncated or was not written by `c4d datagen`; regenerate it"
             )
+    if "rgb" in wanted and member_suffix("rgb") not in sample and FORMAT_1_RGB not in sample:
+        raise UserError(
+            f"scene {key!r}{where} has no rgb member ({member_suffix('rgb')!r}, or "
+            f"{FORMAT_1_RGB!r} in format 1 shards); it was written by another version of "
+            "`c4d datagen`: read it with that version or regenerate it"
+        )
     values: dict[str, Any] = {}
     suffix = member_suffix("intrinsics")
     try:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import os
 import numpy as np
 import pybullet as pb
 
@@ -132,16 +133,18 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
                                cfg.physics.settle_speed)
         for i, body in bodies.items():
             spec = description.objects[i]
-            pb.changeDynamics(body, -1, lateralFriction=spec.friction, restitution=spec.restitution,
+            pb.changeDynamics(body, -1, lateralFriction=spec.friction, restitution=float(os.environ.get("R2", spec.restitution)),
                               linearDamping=cfg.physics.damping, angularDamping=cfg.physics.damping,
                               physicsClientId=client)
         pb.changeDynamics(floor, -1, lateralFriction=cfg.physics.floor_friction,
-                          restitution=cfg.physics.floor_restitution, physicsClientId=client)
-        import os
+                          restitution=float(os.environ.get("R2", cfg.physics.floor_restitution)), physicsClientId=client)
+
         settle_steps += _settle(client, statics, int(cfg.physics.resettle_frames), steps_per_frame,
                                 cfg.physics.settle_speed, int(os.environ.get("HOLD", "1")))
-        for body in statics:
+        for i, body in bodies.items():
             pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=client)
+            pb.changeDynamics(body, -1, restitution=description.objects[i].restitution, physicsClientId=client)
+        pb.changeDynamics(floor, -1, restitution=cfg.physics.floor_restitution, physicsClientId=client)
 
         for i, spec in enumerate(description.objects):
             if spec.tossed:

@@ -3,6 +3,7 @@
 import json
 import tarfile
 
+import cv2
 import numpy as np
 import pytest
 
@@ -101,6 +102,31 @@ def test_decode_only_requested_fields():
         decode_scene(encode_scene(scene, "k"), fields=["rgbd"])
 
 
+def test_format_1_rgb_png_is_still_read_and_skipped_members_are_not_read(tmp_path):
+    scene = synthetic_scene()
+    sample = encode_scene(scene, "train-00000000")
+    t, h, w, _ = scene.rgb.shape
+    _, png = cv2.imencode(".png", scene.rgb.reshape(t * h, w, 3)[..., ::-1])  # stacked BGR frames
+    format_1 = {("rgb.png" if k == "rgb.npy" else k): (png.tobytes() if k == "rgb.npy" else v)
+                for k, v in sample.items()}
+    shard = tmp_path / "train-000000.tar"
+    with ShardWriter(shard) as writer:
+        writer.write(format_1)
+        writer.write({**sample, "__key__": "train-00000001"})
+    old, new = iter_samples(shard, fields=["rgb", "tracks"])
+    assert set(old) == {"__key__", "__url__", "rgb.png", "tracks.npy.bsz", "intrinsics.npy.bsz",
+                        "meta.json"}  # skipped: depth, flow, ...; intrinsics and meta always read
+    assert set(new) == set(old) - {"rgb.png"} | {"rgb.npy"}
+    for raw in (old, new):
+        out = decode_scene(raw, fields=["rgb", "tracks"])
+        assert np.array_equal(out.rgb, scene.rgb) and np.array_equal(out.tracks, scene.tracks)
+        assert out.rgb.flags.writeable and out.depth is None
+    del sample["rgb.npy"]  # e.g. a future format's rgb member
+    with pytest.raises(UserError, match="no rgb member"):
+        decode_scene(sample, fields=["rgb"])
+    assert decode_scene(sample, fields=["tracks"]).rgb is None
+
+
 def test_encode_rejects_contract_violations():
     scene = synthetic_scene()
     scene.segmentation = scene.segmentation.astype(np.int64)
@@ -167,6 +193,8 @@ def test_corrupt_member_names_shard_and_scene(tmp_path):
     scene = synthetic_scene()
     sample = encode_scene(scene, "train-00000007")
     sample["depth.npy.bsz"] = sample["depth.npy.bsz"][:-20] + bytes(20)
+    with pytest.raises(UserError, match=r"train-00000007.*rgb\.npy"):
+        decode_scene({**sample, "rgb.npy": sample["rgb.npy"][:-3]})
     write_shard_path = tmp_path / "train-000000.tar"
     with ShardWriter(write_shard_path) as writer:
         writer.write(sample)

@@ -1,0 +1,37 @@
+"""`c4d demo --quick`: the whole chain end to end (CI's integration test)."""
+
+import json
+
+import pytest
+
+from c4d.cli import main
+
+
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "--quick", "--out", str(out)]) == 0
+    return out
+
+
+def test_every_step_ran_and_the_summary_has_every_number(demo_out):
+    for step in ("data", "train", "eval", "reconstruct", "pictures"):
+        assert json.loads((demo_out / step / "done.json").read_text())["seconds"] >= 0
+    summary = (demo_out / "summary.md").read_text()
+    assert "DynPT (trained here)" in summary and "zero motion, all static" in summary
+    assert "| C4D |" in summary and "| GA only |" in summary and "nan" not in summary
+    for name in ("frames", "depth", "masks", "poses_tum.txt", "scene.ply", "report.json"):
+        assert (demo_out / "reconstruct" / "c4d" / name).exists()
+    assert (demo_out / "pictures" / "dataset" / "index.html").exists()
+    assert (demo_out / "pictures" / "tracks" / "overlay.mp4").stat().st_size > 0
+
+
+def test_rerun_resumes_and_skips_every_step(demo_out, caplog):
+    caplog.set_level("INFO", logger="c4d.demo")
+    assert main(["demo", "--quick", "--out", str(demo_out)]) == 0
+    assert caplog.text.count("done before, skipped") == 5
+
+
+def test_another_config_into_the_same_folder_is_refused(demo_out, capsys):
+    assert main(["demo", "--quick", "--out", str(demo_out), "train.steps=7"]) == 2
+    assert "another config" in capsys.readouterr().err
