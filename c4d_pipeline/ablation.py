@@ -13,7 +13,8 @@ delta < 1.25 (per-sequence scale-and-shift alignment). Results are cached per (s
 OUT/runs/ so an interrupted run resumes; OUT/ablation.json and OUT/ablation.md hold the tables.
 
     python -m c4d_pipeline.ablation [--dynamic DIR] [--static DIR] --out OUT [--size 64]
-        [--frames N] [--preset default] [--flow gt] [--bias on,off] [key=value ...]
+        [--frames N] [--preset default] [--flow gt] [--bias on,off]
+        [--variants "GA only,w/o CMA,w/o CTS,C4D"] [key=value ...]
 """
 
 from __future__ import annotations
@@ -88,10 +89,11 @@ def scores(result_depth, cam_to_world, scene: Scene) -> dict[str, float]:
 
 
 def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, flow_spec: str,
-                 masks_from: str) -> dict:
-    """Scores of every variant on one scene: {variant: {metric: value}, 'mask_iou': ...}.
+                 masks_from: str, variants=tuple(RUNS)) -> dict:
+    """Scores of the variants on one scene: {variant: {metric: value}, 'mask_iou': ...}.
 
-    preset/overrides: the c4d config every variant starts from (each adds its weight overrides).
+    preset/overrides: the c4d config every variant starts from (each adds its weight overrides);
+    variants: the stage-1 runs (keys of RUNS) to make.
     """
     cfg = load_config("c4d", preset, overrides=overrides)
     num_frames = scene.num_frames
@@ -111,7 +113,8 @@ def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, fl
                                             MotionMaskConfig(**dict(cfg.motion_mask.c4d))).masks
     out: dict = {"mask_iou": mask_iou(masks, gt_masks)["iou"],
                  "moving_fraction": float(gt_masks.mean()), "seconds": {}}
-    for name, variant in RUNS.items():
+    for name in variants:
+        variant = RUNS[name]
         run_cfg = load_config("c4d", preset, overrides=list(overrides) + variant)
         start = time.perf_counter()
         res = optimise(pw, num_frames, run_cfg, flows=flows, static_masks=~masks,
@@ -124,8 +127,9 @@ def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, fl
 
 
 def mean_table(runs: dict, keys: list[str]) -> dict[str, dict[str, float]]:
-    """Mean of every metric per variant over the runs named in `keys`."""
-    return {v: {m: float(np.mean([runs[k][v][m] for k in keys])) for m in METRICS} for v in VARIANTS}
+    """Mean of every metric per variant present in all the runs named in `keys`."""
+    present = [v for v in VARIANTS if all(v in runs[k] for k in keys)]
+    return {v: {m: float(np.mean([runs[k][v][m] for k in keys])) for m in METRICS} for v in present}
 
 
 def markdown(tables: dict, counts: dict) -> str:
@@ -134,8 +138,7 @@ def markdown(tables: dict, counts: dict) -> str:
         lines += [f"### {title} ({counts[title]} scenes)", "",
                   "| variant | ATE | RPE trans | RPE rot (deg) | Abs Rel | RMSE | delta<1.25 |",
                   "|---|---|---|---|---|---|---|"]
-        for v in VARIANTS:
-            r = table[v]
+        for v, r in table.items():
             lines.append(f"| {v} | {r['ate']:.4f} | {r['rpe_trans']:.4f} | {r['rpe_rot']:.3f} | "
                          f"{r['abs_rel']:.4f} | {r['rmse']:.4f} | {r['delta_1_25']:.3f} |")
         lines.append("")
@@ -156,6 +159,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--flow", default="gt", help="flow estimator: gt | dis[:PRESET] | raft:PATH")
     parser.add_argument("--masks", default="c4d", choices=("c4d", "gt"), help="motion masks used by CMA")
     parser.add_argument("--bias", default="on,off", help="static-world bias settings to run")
+    parser.add_argument("--variants", default=",".join(RUNS),
+                        help="comma-separated stage-1 runs out of " + ", ".join(RUNS)
+                        + " ('w/o PTS' comes with C4D)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("overrides", nargs="*", help="config key=value overrides")
     args = parser.parse_args(argv)
@@ -169,6 +175,9 @@ def main(argv: list[str] | None = None) -> int:
     biases = [b.strip() for b in args.bias.split(",")]
     if not set(biases) <= {"on", "off"}:
         raise UserError(f"--bias takes on, off or on,off; got {args.bias!r}")
+    variants = [v.strip() for v in args.variants.split(",")]
+    if not set(variants) <= set(RUNS):
+        raise UserError(f"--variants takes names out of {', '.join(RUNS)}; got {args.variants!r}")
     out = Path(args.out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     runs, groups = {}, {}
@@ -189,10 +198,11 @@ def main(argv: list[str] | None = None) -> int:
                 else:
                     log.info("%s: %d frames %dx%d", key, scene.num_frames, *scene.image_size)
                     runs[key] = ablate_scene(scene, args.preset, list(args.overrides), bias == "on",
-                                             args.flow, args.masks)
+                                             args.flow, args.masks, variants)
                     text = json.dumps(runs[key], indent=1)
                     _atomic(path, lambda fh: fh.write(text.encode()))
-                    log.info("%s: ATE GA only %.4f, C4D %.4f", key, runs[key]["GA only"]["ate"], runs[key]["C4D"]["ate"])
+                    log.info("%s: ATE %s", key, ", ".join(
+                        f"{v} {runs[key][v]['ate']:.4f}" for v in VARIANTS if v in runs[key]))
                 groups.setdefault(f"{group} scenes, static-world bias {bias}", []).append(key)
     tables = {title: mean_table(runs, keys) for title, keys in groups.items()}
     counts = {title: len(keys) for title, keys in groups.items()}

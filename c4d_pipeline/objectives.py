@@ -4,7 +4,9 @@ Shapes: T frames, E edges (directed pairs), P = H*W pixels, N tracks.
 - GA  (global alignment): confidence-weighted unsquared Euclidean distance between the world
   pointmaps and each pair's pointmaps mapped by its similarity (DUSt3R).
 - CMA (camera movement alignment): L1 between the ego-motion flow implied by depth, poses and
-  intrinsics and the optical flow, on static pixels.
+  intrinsics and the optical flow, on static pixels, in pixels of a reference image size (512, the
+  DUSt3R/MonST3R resolution the paper's weight 0.01 was set at), so the weight means the same at
+  any optimisation resolution.
 - CTS (camera trajectory smoothness): sum_t ||R_t^T R_{t+1} - I||_F + ||T_{t+1} - T_t||_2.
 - PTS (point trajectory smoothness): L1 between the world pointmaps and their smoothed version,
   built by smoothing lifted 3-D tracks with adaptive weights (kernel 5, lambda 1) and spreading
@@ -76,17 +78,18 @@ def ego_flow(cam_points_i: torch.Tensor, cam_to_world_i: torch.Tensor,
 def camera_motion_sum(cam_points: torch.Tensor, cam_to_world: torch.Tensor,
                       intrinsics: torch.Tensor, ei: torch.Tensor, ej: torch.Tensor,
                       flow: torch.Tensor, static: torch.Tensor, pixels: torch.Tensor,
-                      max_px: float) -> torch.Tensor:
-    """sum over static pixels of |F_ego^{i->j} - F^{i->j}|_1 (both channels). Divide by the number
-    of static pixels (times 2) for the CMA loss.
+                      max_px: float, px_scale: float = 1.0) -> torch.Tensor:
+    """sum over static pixels of px_scale |F_ego^{i->j} - F^{i->j}|_1 (both channels). Divide by
+    the number of static pixels (times 2) for the CMA loss.
 
     cam_points (T,P,3) own-camera points; cam_to_world (T,4,4); intrinsics (T,3,3); ei, ej (e,);
     flow (e,P,2) optical flow i->j; static (e,P) bool (static in frame i); pixels (P,2).
-    Pixels whose error exceeds `max_px` (flow outliers, leaving the image) or that land behind
-    camera j are ignored, as in MonST3R's flow loss.
+    `px_scale` converts this image's pixels to reference pixels (reference size / image size);
+    errors and `max_px` are in reference pixels. Pixels whose error exceeds `max_px` (flow
+    outliers, leaving the image) or that land behind camera j are ignored, as in MonST3R's flow loss.
     """
     ego, z_j = ego_flow(cam_points[ei], cam_to_world[ei], cam_to_world[ej], intrinsics[ej], pixels)
-    err = (ego - flow).abs()  # (e,P,2)
+    err = px_scale * (ego - flow).abs()  # (e,P,2) reference pixels
     keep = static[..., None] & (z_j > 1e-6)[..., None] & (err < max_px).detach()
     return (err * keep).sum()
 

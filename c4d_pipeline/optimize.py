@@ -2,6 +2,9 @@
 
 Stage 1: GA + w_cma CMA + w_cts CTS over depth, poses, intrinsics and the per-edge similarities.
 Stage 2: poses, intrinsics and edge similarities fixed; w_pts PTS over depth only.
+Units, so the paper's weights keep their meaning: the world is scaled as DUSt3R's (mean distance of
+the points from their camera `optim.world_scale` = 0.5: pair pointmaps of unit mean distance, edge
+scales of geometric mean 0.5), and CMA measures flow in pixels of a `cma.reference_size` = 512 image.
 Both: Adam, lr 0.01 (decayed to `lr_min` by `schedule`), `stage1_iters` / `stage2_iters` steps.
 
 Memory: GA and CMA are evaluated `edge_chunk` edges at a time. The per-frame quantities (world
@@ -16,7 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -24,9 +27,9 @@ from tqdm import tqdm
 
 from c4d.errors import UserError
 from c4d_pipeline import objectives
-from c4d_pipeline.alignment import initialise
+from c4d_pipeline.alignment import Initialisation, initialise
 from c4d_pipeline.pointmaps import PairwisePointmaps
-from c4d_pipeline.scene_params import SceneParams
+from c4d_pipeline.scene_params import SceneParams, pixel_rays
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +38,7 @@ log = logging.getLogger(__name__)
 class OptimisationResult:
     """Outputs of `optimise` (numpy, float32). T frames of H x W."""
 
-    depth: np.ndarray  # (T,H,W) z-depth in the reconstruction's units (median init depth 1)
+    depth: np.ndarray  # (T,H,W) z-depth in the reconstruction's units (see `rescale_world`)
     cam_to_world: np.ndarray  # (T,4,4)
     intrinsics: np.ndarray  # (T,3,3)
     points: np.ndarray  # (T,H,W,3) world pointmaps
@@ -109,10 +112,27 @@ def frame_confidence(pw: PairwisePointmaps, num_frames: int) -> np.ndarray:
     return conf
 
 
+def rescale_world(init: Initialisation, image_size: tuple[int, int], world_scale: float) -> Initialisation:
+    """`init` with the world scaled so that the mean distance of every pixel's point from its own
+    camera is `world_scale` (0: unchanged). Depth, camera and edge translations and edge scales
+    scale together, so the world pointmaps and the edges' mapped pointmaps scale alike."""
+    if world_scale <= 0:
+        return init
+    h, w = image_size
+    principal = torch.tensor([(w - 1) / 2, (h - 1) / 2], dtype=init.focal.dtype)
+    ray_len = pixel_rays(h, w, init.focal, principal).norm(dim=-1)  # (T,H,W) distance per unit depth
+    factor = world_scale / float((ray_len * init.depth).mean())
+    pose = init.cam_to_world.clone()
+    pose[:, :3, 3] *= factor
+    return replace(init, depth=init.depth * factor, cam_to_world=pose,
+                   edge_scale=init.edge_scale * factor, edge_translation=init.edge_translation * factor)
+
+
 @dataclass
 class _StepCfg:
     edge_chunk: int  # edges per chunk, 0 = all
-    cma_max_px: float  # CMA ignores flow errors above this many pixels
+    cma_max_px: float  # CMA ignores flow errors above this many reference pixels
+    cma_px_scale: float  # reference pixels per image pixel
 
 
 def _stage1_step(params: SceneParams, data: _Inputs, weights, cfg: _StepCfg, pixels) -> dict:
@@ -140,7 +160,7 @@ def _stage1_step(params: SceneParams, data: _Inputs, weights, cfg: _StepCfg, pix
             l_cam, l_pose, l_intr = leaves[4:]
             cma = objectives.camera_motion_sum(
                 l_cam, l_pose, l_intr, data.ei[sl], data.ej[sl], data.flow[sl], data.static[sl],
-                pixels, cfg.cma_max_px) / (2 * data.num_static)
+                pixels, cfg.cma_max_px, cfg.cma_px_scale) / (2 * data.num_static)
             loss = loss + weights.cma * cma
             cma_total += float(cma.detach())
         loss.backward()
@@ -195,12 +215,14 @@ def optimise(
     _check_inputs(pw, num_frames, flows, static_masks, tracks, visible)
     torch.manual_seed(int(cfg.seed))
     opt_cfg, weights = cfg.optim, cfg.weights
-    step_cfg = _StepCfg(opt_cfg.edge_chunk, cfg.cma.max_px)
     history: dict = {"seconds": {}, "losses": {}}
     h, w = pw.image_size
+    px_scale = cfg.cma.reference_size / max(h, w) if cfg.cma.reference_size > 0 else 1.0
+    step_cfg = _StepCfg(opt_cfg.edge_chunk, cfg.cma.max_px, px_scale)
 
     start = time.perf_counter()
-    init = initialise(pw, num_frames, shared_focal=opt_cfg.shared_focal)
+    init = rescale_world(initialise(pw, num_frames, shared_focal=opt_cfg.shared_focal),
+                         (h, w), opt_cfg.world_scale)
     params = SceneParams(init.depth, init.cam_to_world, init.focal, init.edge_scale,
                          init.edge_rotation, init.edge_translation,
                          shared_focal=opt_cfg.shared_focal).to(device)

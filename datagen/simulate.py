@@ -7,7 +7,9 @@ toss (time -1, in frames) to time T, so sub-frame poses for motion blur come str
 
 Deviations from Kubric: collision shapes are convex hulls of the visual meshes (not VHACD
 decompositions), mass is density x hull volume at the object's scale (not the unscaled GSO mass),
-settling uses extra damping and ends early once every object is nearly at rest, and the settled
+settling uses extra damping and ends early once every object is nearly at rest, a second settling
+phase under the video's friction, restitution and damping follows it (without it a third of the
+untouched static objects slid or toppled in the video once friction dropped), and the settled
 objects' angular velocities are zeroed along with their linear ones.
 """
 
@@ -15,7 +17,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import os
 import numpy as np
 import pybullet as pb
 
@@ -79,8 +80,8 @@ def _max_speed(client: int, bodies: list[int]) -> float:
 
 def _settle(client: int, bodies: list[int], max_frames: int, steps_per_frame: int,
             speed: float, hold_frames: int = 1) -> int:
-    """Step until every body has been slower than `speed` at `hold_frames` frame ends in a row
-    (or `max_frames` have passed); returns the steps taken."""
+    """Step until every body was slower than `speed` (units/s, rad/s) at the end of `hold_frames`
+    frames in a row, or for `max_frames` frames; returns the number of steps taken."""
     still = 0
     for frame in range(max_frames):
         for _ in range(steps_per_frame):
@@ -126,25 +127,23 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
 
         # Settle as Kubric does (friction 1, restitution 0), then give the static objects and the
         # floor the video's friction, restitution and damping and let them come to rest again:
-        # a pile that friction 1 holds up may slide at the video's lower friction, and it must do
-        # so before the toss, not in the video.
+        # objects leaning on others that friction 1 holds up slide or topple at the video's
+        # friction (0.5 x 0.5 between objects, 0.5 x 0.3 on the floor), and they must do so
+        # before the toss, not in the video.
         statics = list(bodies.values())
         settle_steps = _settle(client, statics, int(cfg.physics.settle_frames), steps_per_frame,
                                cfg.physics.settle_speed)
         for i, body in bodies.items():
             spec = description.objects[i]
-            pb.changeDynamics(body, -1, lateralFriction=spec.friction, restitution=float(os.environ.get("R2", spec.restitution)),
+            pb.changeDynamics(body, -1, lateralFriction=spec.friction, restitution=spec.restitution,
                               linearDamping=cfg.physics.damping, angularDamping=cfg.physics.damping,
                               physicsClientId=client)
         pb.changeDynamics(floor, -1, lateralFriction=cfg.physics.floor_friction,
-                          restitution=float(os.environ.get("R2", cfg.physics.floor_restitution)), physicsClientId=client)
-
+                          restitution=cfg.physics.floor_restitution, physicsClientId=client)
         settle_steps += _settle(client, statics, int(cfg.physics.resettle_frames), steps_per_frame,
-                                cfg.physics.settle_speed, int(os.environ.get("HOLD", "1")))
-        for i, body in bodies.items():
+                                cfg.physics.settle_speed, int(cfg.physics.resettle_hold_frames))
+        for body in statics:
             pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=client)
-            pb.changeDynamics(body, -1, restitution=description.objects[i].restitution, physicsClientId=client)
-        pb.changeDynamics(floor, -1, restitution=cfg.physics.floor_restitution, physicsClientId=client)
 
         for i, spec in enumerate(description.objects):
             if spec.tossed:

@@ -200,7 +200,7 @@ def make_loader(stream: ShardStream, batch_size: int, num_workers: int) -> DataL
     """A DataLoader over `stream`: batches come from workers in turn, so the order is fixed."""
     return DataLoader(stream, batch_size=batch_size, num_workers=num_workers,
                       persistent_workers=num_workers > 0, pin_memory=torch.cuda.is_available(),
-                      prefetch_factor=4 if num_workers > 0 else None,
+                      prefetch_factor=2 if num_workers > 0 else None,
                       worker_init_fn=_init_worker if num_workers > 0 else None)
 
 

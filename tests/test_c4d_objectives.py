@@ -55,6 +55,10 @@ def test_camera_motion_alignment_zero_for_ego_flow_and_l1_otherwise():
     assert value.item() == pytest.approx(0.5 * (h * w - 4))
     # errors beyond max_px are ignored
     assert obj.camera_motion_sum(cam, poses, k, ei, ej, flow, static, pixels, 0.4).item() == pytest.approx(0.0)
+    # in reference pixels: this 5-px-wide image seen as a 20-px one, errors (and max_px) 4x larger
+    value = obj.camera_motion_sum(cam, poses, k, ei, ej, flow, static, pixels, 50.0, px_scale=4.0)
+    assert value.item() == pytest.approx(4 * 0.5 * (h * w - 4))
+    assert obj.camera_motion_sum(cam, poses, k, ei, ej, flow, static, pixels, 1.9, px_scale=4.0).item() == pytest.approx(0.0, abs=1e-9)
 
 
 def test_camera_smoothness_hand_values():

