@@ -23,7 +23,6 @@ import sys
 import tempfile
 import time
 import zlib
-from pathlib import Path
 
 import cv2
 import numpy as np

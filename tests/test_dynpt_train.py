@@ -69,16 +69,16 @@ def test_tiny_model_learns_on_generated_shards(tmp_path):
     run = tmp_path / "run"
     cfg = load_config("dynpt", "tiny-cpu", overrides=[
         f"data.sources=[{shards}]", f"eval.source={shards}", f"train.out_dir={run}",
-        "train.steps=60", "train.ckpt_every=30", "train.keep_last=1", "eval.every=30",
+        "train.steps=120", "train.ckpt_every=60", "train.keep_last=1", "eval.every=60",
         "eval.num_tracks=64", "train.total_batch=2", "train.batch_size=2", "data.num_tracks=32"])
     train(cfg)
     log = _log(run)
     assert np.mean([r["total"] for r in log[-15:]]) < 0.8 * np.mean([r["total"] for r in log[:5]])
-    assert [p.name for p in (run / "checkpoints").glob("step_*.pt")] == ["step_00000060.pt"]
+    assert [p.name for p in (run / "checkpoints").glob("step_*.pt")] == ["step_00000120.pt"]
     assert (run / "checkpoints" / "best.pt").exists()
     assert list((run / "tb").glob("events.out.tfevents.*"))
     out = tmp_path / "eval"
-    assert main(["eval", "--ckpt", str(run / "checkpoints" / "step_00000060.pt"), "--data",
+    assert main(["eval", "--ckpt", str(run / "checkpoints" / "step_00000120.pt"), "--data",
                  str(shards), "--config", "tiny-cpu", "--out", str(out),
                  "eval.resolution=[64,64]", "eval.num_tracks=64"]) == 0
     balanced, summary = _balanced_d_acc(out)
