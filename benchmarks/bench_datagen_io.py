@@ -116,8 +116,8 @@ FLOAT_CODECS = {
                                            lambda d, a: decode_array(d).astype(np.float32)),
 }
 RGB_CODECS = {
-    "npy (raw, baseline)": (_npy, _from_npy),
-    "PNG level 1 (chosen)": _image(".png", [cv2.IMWRITE_PNG_COMPRESSION, 1]),
+    "npy (raw, baseline; chosen in format 2)": (_npy, _from_npy),
+    "PNG level 1 (format 1)": _image(".png", [cv2.IMWRITE_PNG_COMPRESSION, 1]),
     "PNG level 6": _image(".png", [cv2.IMWRITE_PNG_COMPRESSION, 6]),
     "PNG per frame, level 1": _frames(".png", [cv2.IMWRITE_PNG_COMPRESSION, 1]),
     "WebP lossless per frame": _frames(".webp", [cv2.IMWRITE_WEBP_QUALITY, 101]),
