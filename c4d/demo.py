@@ -149,34 +149,50 @@ class Demo:
 
         r = self.cfg.recon
         source = self.val_dirs[r.preset]
-        scene = next(islice(read_scenes(source), r.scene_index, None), None)
-        if scene is None:
-            raise UserError(f"recon.scene_index={r.scene_index} is past the end of {source}")
-        track_result = load_tracker(checkpoint).track(scene.rgb)
-        metrics = {}
-        for variant, extra in (("C4D", []), ("GA only", RUNS["GA only"])):
-            cfg = load_config("c4d", r.config, overrides=[*r.overrides, *extra])
-            target = folder / variant.lower().replace(" ", "-")
-            reconstruct(scene.rgb, GroundTruthPointmaps.from_config(scene, cfg.gt_pointmaps),
-                        build_flow(r.flow), track_result, cfg, target,
-                        inputs={"scene": f"{source} #{r.scene_index}",
-                                "pointmaps": "ground truth + noise + static-world bias",
-                                "tracker": checkpoint})
-            metrics[variant] = evaluate(read_reconstruction(target), scene)
+        scenes = list(islice(read_scenes(source), r.num_scenes))
+        if len(scenes) < r.num_scenes:
+            raise UserError(f"recon.num_scenes={r.num_scenes} but {source} holds {len(scenes)} scenes; "
+                            f"lower recon.num_scenes or raise data.val_scenes")
+        tracker = load_tracker(checkpoint)
+        metrics, outputs = {}, {}
+        for index, scene in enumerate(scenes):
+            track_result = tracker.track(scene.rgb)
+            name = f"scene-{index:03d}"
+            metrics[name], outputs[name] = {}, {}
+            for variant, extra in (("C4D", []), ("GA only", RUNS["GA only"])):
+                cfg = load_config("c4d", r.config, overrides=[*r.overrides, *extra])
+                target = folder / name / variant.lower().replace(" ", "-")
+                reconstruct(scene.rgb, GroundTruthPointmaps.from_config(scene, cfg.gt_pointmaps),
+                            build_flow(r.flow), track_result, cfg, target,
+                            inputs={"scene": f"{source} #{index}",
+                                    "pointmaps": "ground truth + noise + static-world bias",
+                                    "tracker": checkpoint})
+                metrics[name][variant] = evaluate(read_reconstruction(target), scene)
+                outputs[name][variant] = str(target)
         _write_json(folder / "metrics.json", metrics)
-        return {"scene": f"{source} #{r.scene_index}", "metrics": metrics,
-                "outputs": {v: str(folder / v.lower().replace(" ", "-")) for v in metrics}}
+        return {"source": str(source), "metrics": metrics, "outputs": outputs}
 
     # -- 5. pictures
     def pictures(self, folder: Path, recon_dir: str, checkpoint: str) -> dict:
         r = self.cfg.recon
         _c4d("inspect", self.val_dirs[r.preset], "--out", folder / "dataset")
         _c4d("inspect", recon_dir, "--out", folder / "reconstruction",
-             "--gt", self.val_dirs[r.preset], "--scene-index", r.scene_index)
+             "--gt", self.val_dirs[r.preset], "--scene-index", 0)
         _c4d("track", Path(recon_dir) / "frames", "--ckpt", checkpoint, "--out", folder / "tracks")
         return {"dataset_report": str(folder / "dataset" / "index.html"),
                 "reconstruction_report": str(folder / "reconstruction" / "index.html"),
                 "track_overlay": str(folder / "tracks")}
+
+
+def _num(value) -> str:
+    return "n/a" if value is None else f"{value:.4f}"
+
+
+def _recon_cells(m: dict) -> list:
+    """ATE, RPE trans, RPE rot, Abs Rel, delta<1.25, mask IoU of one eval-recon result."""
+    pose, depth = m["pose"], m.get("depth", {}).get("scale_shift", {})
+    return [pose["ate"], pose["rpe_trans"], pose["rpe_rot"], depth.get("abs_rel"),
+            depth.get("delta_1_25"), m.get("mask", {}).get("iou")]
 
 
 def _pct(value) -> str:
@@ -205,18 +221,23 @@ def summary_markdown(records: dict) -> str:
     rec = records["reconstruct"]
     lines += ["", f"Checkpoint: `{records['train']['checkpoint']}`; training log "
               f"`{records['train']['log']}`.", "",
-              f"## Reconstruction of {rec['scene']}", "",
+              f"## Reconstruction of the first {len(rec['metrics'])} scenes of {rec['source']}", "",
               "Pointmaps: ground truth with noise and the static-world bias (a stand-in for a "
               "DUSt3R-family network, see docs/RESULTS.md); flow: DIS; tracker: the one trained above.", "",
-              "| method | ATE | RPE trans | RPE rot (deg) | depth Abs Rel | δ<1.25 | mask IoU |",
-              "|---|---|---|---|---|---|---|"]
-    for variant, m in rec["metrics"].items():
-        pose, depth = m["pose"], m.get("depth", {}).get("scale_shift", {})
-        cells = [pose["ate"], pose["rpe_trans"], pose["rpe_rot"], depth.get("abs_rel"),
-                 depth.get("delta_1_25"), m.get("mask", {}).get("iou")]
-        lines.append(f"| {variant} | " + " | ".join(
-            "n/a" if c is None else f"{c:.4f}" for c in cells) + " |")
-    lines += ["", "Outputs: " + ", ".join(f"`{p}`" for p in rec["outputs"].values()), "",
+              "| scene | method | ATE | RPE trans | RPE rot (deg) | depth Abs Rel | δ<1.25 | mask IoU |",
+              "|---|---|---|---|---|---|---|---|"]
+    rows = {variant: [] for variant in ("C4D", "GA only")}
+    for scene, by_variant in rec["metrics"].items():
+        for variant, m in by_variant.items():
+            rows[variant].append(_recon_cells(m))
+            lines.append(f"| {scene} | {variant} | " + " | ".join(_num(c) for c in rows[variant][-1]) + " |")
+    for variant, cells in rows.items():
+        mean = [None if any(c[k] is None for c in cells) else sum(c[k] for c in cells) / len(cells)
+                for k in range(len(cells[0]))]
+        lines.append(f"| mean | {variant} | " + " | ".join(_num(c) for c in mean) + " |")
+    wins = sum(c[0] < g[0] for c, g in zip(rows["C4D"], rows["GA only"]))
+    lines += ["", f"C4D has the lower ATE than GA only in {wins} of {len(rows['C4D'])} scenes."]
+    lines += ["", f"Outputs: `{Path(rec['outputs']['scene-000']['C4D']).parent.parent}/scene-NNN/{{c4d,ga-only}}`", "",
               "## Pictures", ""]
     lines += [f"- {k.replace('_', ' ')}: `{v}`" for k, v in records["pictures"].items()
               if k != "seconds"]
@@ -232,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
     checkpoint = records["train"]["checkpoint"]
     records["eval"] = demo.run_step("eval", lambda f: demo.eval(f, checkpoint))
     records["reconstruct"] = demo.run_step("reconstruct", lambda f: demo.reconstruct(f, checkpoint))
-    recon_dir = records["reconstruct"]["outputs"]["C4D"]
+    recon_dir = records["reconstruct"]["outputs"]["scene-000"]["C4D"]
     records["pictures"] = demo.run_step("pictures", lambda f: demo.pictures(f, recon_dir, checkpoint))
     summary = args.out / "summary.md"
     summary.write_text(summary_markdown(records))

@@ -21,7 +21,7 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
     assert "DynPT (trained here)" in summary and "zero motion, all static" in summary
     assert "| C4D |" in summary and "| GA only |" in summary and "nan" not in summary
     for name in ("frames", "depth", "masks", "poses_tum.txt", "scene.ply", "report.json"):
-        assert (demo_out / "reconstruct" / "c4d" / name).exists()
+        assert (demo_out / "reconstruct" / "scene-000" / "c4d" / name).exists()
     assert (demo_out / "pictures" / "dataset" / "index.html").exists()
     assert (demo_out / "pictures" / "tracks" / "overlay.mp4").stat().st_size > 0
 
