@@ -246,6 +246,21 @@ def draw_tracks(
     return out
 
 
+def draw_tracks_enlarged(
+    frames: np.ndarray, tracks: np.ndarray, visible: np.ndarray | None = None,
+    moving: np.ndarray | None = None, min_height: int = 256, **kwargs,
+) -> np.ndarray:
+    """`draw_tracks` on frames enlarged by the integer factor that brings them to `min_height` rows.
+
+    Small videos (a 64x64 demo scene) stay legible: dots and the legend are drawn at the display
+    size and tracks are moved to the enlarged pixel grid (x' = (x + 0.5) f - 0.5). Same arguments
+    as `draw_tracks`; returns RGB uint8 (T,H*f,W*f,3).
+    """
+    factor = display_scale(np.asarray(frames).shape[1], min_height)
+    tracks = (np.asarray(tracks, dtype=np.float32) + 0.5) * factor - 0.5
+    return draw_tracks(upscale(np.asarray(frames), factor), tracks, visible, moving, **kwargs)
+
+
 def draw_legend(image: np.ndarray, entries: dict[str, Sequence[int]]) -> np.ndarray:
     """Copy of an RGB image with a small colour key (name -> RGB) in the bottom-left corner."""
     out = np.ascontiguousarray(image.copy())

@@ -44,7 +44,7 @@ def _read_queries(path: str) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    from datagen.visualize import draw_tracks
+    from datagen.visualize import draw_tracks_enlarged
     from dynpt.inference import load_tracker
     from dynpt.video_io import read_video, write_video
 
@@ -64,8 +64,8 @@ def run(args: argparse.Namespace) -> int:
     log.info("tracked %d points in %.1f s (%.2f s per frame)", result.tracks.shape[1], seconds,
              seconds / T)
     result.save(out / "tracks.npz")
-    overlay = draw_tracks(video, result.tracks, result.visible, result.moving, show_occluded=False,
-                          legend=True)
+    overlay = draw_tracks_enlarged(video, result.tracks, result.visible, result.moving,
+                                   show_occluded=False, legend=True)
     write_video(out / "overlay.mp4", overlay, args.fps)
     moving = np.nanmean(result.moving[result.visible] > 0.5) if result.visible.any() else float("nan")
     log.info("wrote %s and %s (%.0f%% of visible points predicted moving)", out / "tracks.npz",

@@ -19,7 +19,7 @@ import numpy as np
 
 from c4d.errors import UserError
 from datagen.shards import list_shards, read_scenes
-from datagen.visualize import contact_sheet, draw_tracks
+from datagen.visualize import contact_sheet, draw_tracks_enlarged
 from dynpt.augment import resize_clip
 from dynpt.metrics import dynamic_accuracy, tapvid_metrics
 from dynpt.tapvid_data import read_tapvid, sample_queries
@@ -129,16 +129,12 @@ def evaluate_model(model, items: list[dict], eval_cfg, device, query_mode: str =
 def track_image(example: dict, num_frames: int = 4, min_height: int = 256) -> np.ndarray:
     """Predicted tracks on `num_frames` frames, coloured by predicted mobility: uint8 (H,W,3).
 
-    Small videos are enlarged (nearest neighbour, integer factor) to about `min_height` first.
+    Small videos are enlarged (nearest neighbour, integer factor) to at least `min_height` rows.
     """
-    video, tracks = example["video"], example["tracks"]
-    k = max(1, min_height // video.shape[1])
-    if k > 1:
-        video = video.repeat(k, axis=1).repeat(k, axis=2)
-        tracks = (tracks + 0.5) * k - 0.5
-    frames = np.linspace(0, len(video) - 1, num_frames).round().astype(int)
-    drawn = draw_tracks(video[frames], tracks[frames], example["visible"][frames],
-                        np.nan_to_num(example["moving"][frames]), legend=True)
+    frames = np.linspace(0, len(example["video"]) - 1, num_frames).round().astype(int)
+    drawn = draw_tracks_enlarged(example["video"][frames], example["tracks"][frames],
+                                 example["visible"][frames], np.nan_to_num(example["moving"][frames]),
+                                 min_height=min_height, legend=True)
     return contact_sheet(drawn, columns=num_frames, labels=[f"t={t}" for t in frames])
 
 

@@ -30,6 +30,19 @@ def test_draw_tracks_colours_visible_points_by_mobility_and_leaves_input_alone()
     np.testing.assert_allclose(half[0, 10, 10], expected, atol=1)
 
 
+def test_enlarged_tracks_land_on_the_centre_of_their_enlarged_pixel():
+    frames = _gray_video()  # (4,H,W,3)
+    H, W = frames.shape[1:3]
+    tracks = np.zeros((4, 1, 2), np.float32)
+    tracks[:, 0] = (7, 5)  # x, y
+    out = vis.draw_tracks_enlarged(frames, tracks, moving=np.ones((4, 1)), min_height=3 * H + 1, radius=2)
+    assert out.shape == (4, 4 * H, 4 * W, 3)  # factor 4: the smallest reaching 3H+1 rows
+    np.testing.assert_array_equal(out[0, 4 * 5 + 1, 4 * 7 + 2], vis.MOVING_COLOR)  # centre 29.5, 21.5
+    assert (out[0, 0, 0] == 128).all()
+    same = vis.draw_tracks_enlarged(frames, tracks, moving=np.ones((4, 1)), min_height=H, radius=2)
+    np.testing.assert_array_equal(same, vis.draw_tracks(frames, tracks, moving=np.ones((4, 1)), radius=2))
+
+
 def test_occluded_points_are_hollow_rings_or_hidden():
     frames = _gray_video()
     tracks = np.full((4, 1, 2), 20.0, np.float32)
