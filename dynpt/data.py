@@ -64,14 +64,18 @@ def choose_clip(scene: Scene, num_frames: int, max_stride: int, rng: np.random.G
 
 
 def sample_tracks(clip: dict, num_tracks: int, random_query_fraction: float,
-                  rng: np.random.Generator, max_offscreen_px: float = np.inf) -> dict | None:
+                  rng: np.random.Generator, max_offscreen_px: float = np.inf,
+                  moving_fraction: float = 0.0) -> dict | None:
     """Pick `num_tracks` tracks visible somewhere in the clip and a visible query frame for each.
 
     A fraction `random_query_fraction` of them is queried at a uniformly random visible frame,
     the rest at their first visible frame. Tracks are drawn without replacement when there are
     enough, else with replacement. Tracks that go more than `max_offscreen_px` outside the frame
     (e.g. behind the camera) are not drawn: their positions would dominate the occluded-point
-    loss. Returns the model sample, or None if no track qualifies.
+    loss. `moving_fraction` > 0 balances the classes of the mobility head: up to that fraction
+    of the tracks is drawn among those moving in some frame of the clip (as many as there are,
+    without replacement), the rest among all. Returns the model sample, or None if no track
+    qualifies.
     """
     visible = ~clip["occluded"]  # (T,N)
     h, w = clip["rgb"].shape[1:3]
@@ -81,7 +85,14 @@ def sample_tracks(clip: dict, num_tracks: int, random_query_fraction: float,
     candidates = np.flatnonzero(visible.any(axis=0) & near)
     if candidates.size == 0:
         return None
-    chosen = rng.choice(candidates, num_tracks, replace=candidates.size < num_tracks)  # (N',)
+    movers = candidates[clip["moving"][:, candidates].any(axis=0)]
+    num_movers = min(int(round(moving_fraction * num_tracks)), movers.size)
+    chosen_movers = rng.choice(movers, num_movers, replace=False) if num_movers else movers[:0]
+    rest = np.setdiff1d(candidates, chosen_movers)
+    if rest.size == 0:  # every candidate already drawn: the rest are repeats
+        rest = candidates
+    chosen = np.concatenate([chosen_movers, rng.choice(
+        rest, num_tracks - num_movers, replace=rest.size < num_tracks - num_movers)])  # (N',)
     vis = visible[:, chosen]  # (T,N')
     first = vis.argmax(axis=0)  # (N',)
     random_pick = rng.random(num_tracks) < random_query_fraction
@@ -105,7 +116,7 @@ def make_training_sample(scene: Scene, data_cfg, rng: np.random.Generator) -> di
     clip = choose_clip(scene, data_cfg.num_frames, data_cfg.max_stride, rng)
     clip = augment_clip(clip, data_cfg.augment, tuple(data_cfg.crop_size), rng)
     return sample_tracks(clip, data_cfg.num_tracks, data_cfg.random_query_fraction, rng,
-                         data_cfg.max_offscreen_px)
+                         data_cfg.max_offscreen_px, data_cfg.moving_track_fraction)
 
 
 # --- the stream ---------------------------------------------------------------------------------

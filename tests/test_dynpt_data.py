@@ -89,7 +89,8 @@ from tests.dynpt_testdata import synthetic_scene, synthetic_shards  # noqa: E402
 
 DATA = OmegaConf.create({
     "num_frames": 6, "max_stride": 2, "crop_size": [32, 32], "num_tracks": 8,
-    "random_query_fraction": 0.5, "shuffle_buffer": 4, "max_offscreen_px": 1000.0,
+    "random_query_fraction": 0.5, "moving_track_fraction": 0.0, "shuffle_buffer": 4,
+    "max_offscreen_px": 1000.0,
     "augment": OmegaConf.merge(CFG, {"scale_range": [1.0, 1.0], "hflip_prob": 0.0, "vflip_prob": 0.0}),
 })
 
@@ -112,6 +113,21 @@ def test_sampled_queries_are_visible_first_or_random():
     assert np.any(t != rand["visible"].argmax(axis=0))  # some later than the first visible frame
     none = dict(clip, occluded=np.ones_like(occluded))
     assert sample_tracks(none, 4, 0.0, rng) is None
+
+
+def test_moving_fraction_balances_the_mobility_classes():
+    rng = np.random.default_rng(0)
+    moving = np.zeros((6, 50), bool)
+    moving[2:4, :5] = True  # 5 of 50 tracks move, in frames 2-3 only
+    clip = {"rgb": np.zeros((6, 4, 4, 3), np.uint8), "tracks": rng.random((6, 50, 2)),
+            "occluded": np.zeros((6, 50), bool), "moving": moving}
+    uniform = [sample_tracks(clip, 20, 0.0, rng)["moving"].any(axis=0).sum() for _ in range(200)]
+    assert 1.5 < np.mean(uniform) < 2.5  # 20 of 50 drawn: 2 movers expected
+    balanced = sample_tracks(clip, 20, 0.0, rng, moving_fraction=0.2)
+    assert balanced["moving"].any(axis=0).sum() >= 4  # 4 movers asked, plus any drawn uniformly
+    short = sample_tracks(clip, 20, 0.0, rng, moving_fraction=0.5)  # 10 asked, only 5 exist
+    ids = short["tracks"][0]  # tracks are distinct random points: equal rows = the same track
+    assert short["moving"].any(axis=0).sum() == 5 and len(np.unique(ids, axis=0)) == 20
 
 
 def test_clip_choice_and_too_short_scenes():
