@@ -199,6 +199,18 @@ def _pct(value) -> str:
     return "n/a" if value is None else f"{100 * value:.1f}"
 
 
+def _tracker_verdict(results: dict) -> list[str]:
+    """One line per metric saying, in points, whether DynPT beats the zero-motion baseline."""
+    lines = []
+    for key, label in (("d_acc", "D-ACC"), ("d_acc_balanced", "balanced D-ACC"),
+                       ("average_jaccard", "AJ")):
+        diffs = {p: 100 * (r["dynpt"][key] - r["zero_motion"][key]) for p, r in results.items()}
+        verdict = "yes" if all(d > 0 for d in diffs.values()) else "no"
+        lines.append(f"- DynPT above the baseline on {label}: **{verdict}** ("
+                     + ", ".join(f"{p} {d:+.1f}" for p, d in diffs.items()) + " points)")
+    return lines
+
+
 def summary_markdown(records: dict) -> str:
     """OUT/summary.md: every number of the run and where each file is."""
     lines = ["# c4d demo summary", "", "| step | seconds |", "|---|---|"]
@@ -218,6 +230,7 @@ def summary_markdown(records: dict) -> str:
             lines.append(f"| {preset} | {name} | " + " | ".join(_pct(s.get(k)) for k in (
                 "d_acc", "d_acc_moving", "d_acc_static", "d_acc_balanced", "average_jaccard",
                 "average_pts_within_thresh", "occlusion_accuracy")) + " |")
+    lines += ["", *_tracker_verdict(records["eval"]["results"])]
     rec = records["reconstruct"]
     lines += ["", f"Checkpoint: `{records['train']['checkpoint']}`; training log "
               f"`{records['train']['log']}`.", "",

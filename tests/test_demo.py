@@ -20,6 +20,7 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
     summary = (demo_out / "summary.md").read_text()
     assert "DynPT (trained here)" in summary and "zero motion, all static" in summary
     assert "| C4D |" in summary and "| GA only |" in summary and "nan" not in summary
+    assert "DynPT above the baseline on D-ACC: **" in summary
     for name in ("frames", "depth", "masks", "poses_tum.txt", "scene.ply", "report.json"):
         assert (demo_out / "reconstruct" / "scene-000" / "c4d" / name).exists()
     assert (demo_out / "pictures" / "dataset" / "index.html").exists()
@@ -35,3 +36,16 @@ def test_rerun_resumes_and_skips_every_step(demo_out, caplog):
 def test_another_config_into_the_same_folder_is_refused(demo_out, capsys):
     assert main(["demo", "--quick", "--out", str(demo_out), "train.steps=7"]) == 2
     assert "another config" in capsys.readouterr().err
+
+
+def test_verdict_says_yes_only_when_every_val_set_is_above_the_baseline():
+    from c4d.demo import _tracker_verdict
+
+    both = {"d_acc": 0.9, "d_acc_balanced": 0.6, "average_jaccard": 0.5}
+    zero = {"d_acc": 0.91, "d_acc_balanced": 0.5, "average_jaccard": 0.4}
+    results = {"movi-e": {"dynpt": both, "zero_motion": zero},
+               "movi-e-panning": {"dynpt": dict(both, d_acc=0.95), "zero_motion": zero}}
+    d_acc, balanced, aj = _tracker_verdict(results)
+    assert d_acc == "- DynPT above the baseline on D-ACC: **no** (movi-e -1.0, movi-e-panning +4.0 points)"
+    assert "**yes** (movi-e +10.0, movi-e-panning +10.0 points)" in balanced
+    assert aj.startswith("- DynPT above the baseline on AJ: **yes**")
