@@ -27,19 +27,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dynpt.evaluate import evaluate_items, load_source, markdown_table, write_report
+    from dynpt.baselines import ZeroMotionBaseline
+    from dynpt.evaluate import evaluate_items, load_source, write_report
     from dynpt.inference import load_tracker
 
     cfg = load_config("dynpt", args.config, overrides=args.overrides).eval
     tracker = load_tracker(args.ckpt, args.device)
     items, kind = load_source(args.data, cfg)
     result = evaluate_items(tracker, items, args.mode)
+    # The reference that gives the numbers a meaning: no motion, always visible, all static.
+    baseline = evaluate_items(ZeroMotionBaseline(), items, args.mode)["summary"]
     title = f"{Path(args.data).name} ({args.mode})"
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
     out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{args.mode}"
     info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": args.mode,
             "resolution": list(cfg.resolution), "num_tracks": cfg.num_tracks if kind == "shards" else None}
-    json_path, md_path = write_report(result, out, title, info)
-    print(markdown_table(result["summary"], title), end="")
+    json_path, md_path = write_report(result, baseline, out, title, info)
+    print(md_path.read_text(), end="")
     print(f"wrote {json_path} and {md_path}")
     return 0

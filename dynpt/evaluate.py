@@ -138,23 +138,30 @@ def track_image(example: dict, num_frames: int = 4, min_height: int = 256) -> np
     return contact_sheet(drawn, columns=num_frames, labels=[f"t={t}" for t in frames])
 
 
-def markdown_table(summary: dict, title: str) -> str:
-    """One-row Markdown table of the summary (percent)."""
-    keys = [k for k in TABLE_KEYS if k in summary]
-    head = "| source | videos | " + " | ".join(TABLE_KEYS[k] for k in keys) + " |"
-    rule = "|---|---|" + "---|" * len(keys)
-    cells = " | ".join(f"{100 * summary[k]:.1f}" for k in keys)
-    return f"{head}\n{rule}\n| {title} | {summary['num_videos']} | {cells} |\n"
+def markdown_table(rows: dict[str, dict], title: str) -> str:
+    """Markdown table (percent), one row per {name: summary}, e.g. the tracker and a baseline."""
+    first = next(iter(rows.values()))
+    keys = [k for k in TABLE_KEYS if k in first]
+    head = "| source | tracker | videos | " + " | ".join(TABLE_KEYS[k] for k in keys) + " |"
+    rule = "|---|---|---|" + "---|" * len(keys)
+    lines = [head, rule]
+    for name, summary in rows.items():
+        cells = " | ".join(f"{100 * summary[k]:.1f}" for k in keys)
+        lines.append(f"| {title} | {name} | {summary['num_videos']} | {cells} |")
+    return "\n".join(lines) + "\n"
 
 
-def write_report(result: dict, out_dir: str | Path, title: str, info: dict) -> tuple[Path, Path]:
-    """`eval.json` (summary, per video, `info`) and `eval.md` in `out_dir`, both atomically."""
+def write_report(result: dict, baseline: dict, out_dir: str | Path, title: str,
+                 info: dict) -> tuple[Path, Path]:
+    """`eval.json` (summary, per video, the zero-motion baseline's summary, `info`) and `eval.md`
+    (both summaries) in `out_dir`, both atomically."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    payload = {"info": info, "summary": result["summary"], "per_video": result["per_video"]}
+    payload = {"info": info, "summary": result["summary"], "per_video": result["per_video"],
+               "zero_motion": baseline}
+    table = markdown_table({"checkpoint": result["summary"], "zero motion, all static": baseline}, title)
     paths = []
-    for name, text in (("eval.json", json.dumps(payload, indent=2) + "\n"),
-                       ("eval.md", markdown_table(result["summary"], title))):
+    for name, text in (("eval.json", json.dumps(payload, indent=2) + "\n"), ("eval.md", table)):
         tmp = out / f".{name}.tmp{os.getpid()}"
         tmp.write_text(text)
         os.replace(tmp, out / name)
