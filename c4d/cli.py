@@ -20,6 +20,8 @@ from c4d.errors import UserError
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "datagen": ("datagen.cli", "generate MOVi-style synthetic videos with exact labels as shards"),
     "inspect": ("c4d.inspect.cli", "report, pictures and validation of shard sets and reconstructions"),
+    "pretrain-pointmaps": ("c4d_pipeline.cli_pretrain",
+                           "train a small DUSt3R-shaped pointmap network (DynPT's 3D-aware encoder)"),
     "train": ("dynpt.cli_train", "train the dynamic-aware point tracker (DynPT) on shards"),
     "eval": ("dynpt.cli_eval", "evaluate a tracker checkpoint: D-ACC and TAP-Vid metrics"),
     "track": ("dynpt.cli_track", "track points in a video and write tracks plus an overlay video"),

@@ -1,0 +1,29 @@
+"""`c4d pretrain-pointmaps`: train a small DUSt3R-shaped pointmap network on datagen shards.
+
+Its output, `OUT_DIR/pointmap_net.pth`, is an official-layout DUSt3R checkpoint: DynPT takes its
+frozen encoder with `model.encoder_3d.checkpoint=...`, and `c4d run` its pointmaps with
+`pointmaps.checkpoint=...` (see docs/TRAINING.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from c4d.config import load_config
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", default="tiny-cpu",
+                        help="a preset of configs/pointmaps (default tiny-cpu) or a YAML path")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in train.out_dir from its last state")
+    parser.add_argument("overrides", nargs="*", metavar="key=value",
+                        help="config overrides, e.g. data.sources=[shards/train] train.steps=1000")
+
+
+def run(args: argparse.Namespace) -> int:
+    from c4d_pipeline.pointmap_training import train_pointmap_net
+
+    cfg = load_config("pointmaps", args.config, overrides=args.overrides)
+    train_pointmap_net(cfg, resume=args.resume)
+    return 0
