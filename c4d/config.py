@@ -136,6 +136,18 @@ def load_config(
     return cfg
 
 
+def add_training_arguments(parser, group: str, default: str | None = None) -> None:
+    """`--config` (a preset of configs/<group> or a YAML path), `--resume` and key=value overrides,
+    the arguments every training command takes."""
+    parser.add_argument("--config", required=default is None, default=default,
+                        help=f"a preset of configs/{group} ({', '.join(available_presets(group))}) or "
+                        "a YAML path" + (f"; default {default}" if default else ""))
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in train.out_dir where it stopped")
+    parser.add_argument("overrides", nargs="*", metavar="key=value",
+                        help="config overrides, e.g. data.sources=[shards/train] train.steps=1000")
+
+
 def to_dict(cfg: DictConfig) -> dict:
     """A plain, YAML-serialisable copy of a config (for checkpoints, meta and reports)."""
     return OmegaConf.to_container(cfg, resolve=True)

@@ -9,16 +9,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from c4d.config import load_config
+from c4d.config import add_training_arguments, load_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True,
-                        help="a preset of configs/dynpt (tiny-cpu, paper-gpu, ...) or a YAML path")
-    parser.add_argument("--resume", action="store_true",
-                        help="continue the run in train.out_dir from its latest checkpoint")
-    parser.add_argument("overrides", nargs="*", metavar="key=value",
-                        help="config overrides, e.g. data.sources=[shards/train] train.steps=1000")
+    add_training_arguments(parser, "dynpt")
 
 
 def run(args: argparse.Namespace) -> int:
