@@ -25,7 +25,6 @@ import argparse
 import json
 import logging
 import math
-import os
 import time
 from pathlib import Path
 
@@ -36,6 +35,7 @@ from omegaconf import OmegaConf
 from c4d.config import to_dict
 from c4d.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
+from c4d_pipeline.outputs import _atomic
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from datagen.shards import read_scenes
 
@@ -138,9 +138,7 @@ def constructor_string(cfg: Dust3rConfig, image_size: tuple[int, int]) -> str:
 def save_official(net: Dust3rNet, image_size: tuple[int, int], path: Path) -> Path:
     """Write `net` as an official DUSt3R-layout checkpoint (temporary name, then rename)."""
     args = argparse.Namespace(model=constructor_string(net.cfg, image_size))
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save({"model": net.state_dict(), "args": args}, tmp)
-    os.replace(tmp, path)
+    _atomic(path, lambda fh: torch.save({"model": net.state_dict(), "args": args}, fh))
     return path
 
 
@@ -155,7 +153,8 @@ def network_config(model_cfg) -> Dust3rConfig:
 
 
 def train_pointmap_net(cfg, resume: bool = False) -> dict:
-    """Train per `cfg` (configs/pointmaps/*.yaml); returns {'checkpoint', 'steps', 'regression'}."""
+    """Train per `cfg` (configs/pointmaps/*.yaml); returns {'checkpoint' (None when stopped early
+    by train.stop_after), 'steps'}."""
     if not cfg.data.sources:
         raise UserError("data.sources is empty; pass the shards to learn from, e.g. "
                         "\"data.sources=[shards/movi-e]\"")
@@ -207,7 +206,7 @@ def train_pointmap_net(cfg, resume: bool = False) -> dict:
             schedule.step()
             step += 1
             recent.append(stats["regression"])
-            if step % int(cfg.train.log_every) == 0 or step == steps:
+            if step % int(cfg.train.log_every) == 0 or step == stop:
                 line = {"step": step, **stats, "lr": schedule.get_last_lr()[0],
                         "seconds": round(time.time() - started, 1)}
                 log_file.write(json.dumps(line) + "\n")
@@ -216,11 +215,10 @@ def train_pointmap_net(cfg, resume: bool = False) -> dict:
                          stats["loss"], float(np.mean(recent)))
                 recent = []
             if step % int(cfg.train.ckpt_every) == 0 or step == stop:
-                tmp = state_path.with_name("last.pt.tmp")
-                torch.save({"model": net.state_dict(), "optimizer": optimizer.state_dict(),
-                            "schedule": schedule.state_dict(), "step": step,
-                            "rng": rng.bit_generator.state, "config": to_dict(cfg)}, tmp)
-                os.replace(tmp, state_path)
+                state = {"model": net.state_dict(), "optimizer": optimizer.state_dict(),
+                         "schedule": schedule.state_dict(), "step": step,
+                         "rng": rng.bit_generator.state, "config": to_dict(cfg)}
+                _atomic(state_path, lambda fh: torch.save(state, fh))
     if step < steps:
         log.info("stopped at step %d of %d; continue with --resume", step, steps)
         return {"checkpoint": None, "steps": step}
