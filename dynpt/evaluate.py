@@ -26,12 +26,22 @@ from dynpt.tapvid_data import read_tapvid, sample_queries
 
 log = logging.getLogger(__name__)
 
-EVAL_FIELDS = ("rgb", "tracks", "occluded", "moving", "meta")
+EVAL_FIELDS = ("rgb", "tracks", "occluded", "moving", "meta", "track_object", "objects")
+TRACK_KINDS = ("background", "resting object", "tossed object")  # values of an item's `track_kind`
 TABLE_KEYS = {  # summary key -> column title; values are shown in percent
     "d_acc": "D-ACC", "d_acc_moving": "D-ACC moving", "d_acc_static": "D-ACC static",
     "d_acc_balanced": "D-ACC balanced",
     "average_jaccard": "AJ", "average_pts_within_thresh": "<δ avg", "occlusion_accuracy": "OA",
 }
+
+
+def track_kinds(scene) -> np.ndarray | None:
+    """int8 (N,) index into TRACK_KINDS of what each track lies on, or None without the labels."""
+    if scene.track_object is None or scene.objects is None:
+        return None
+    tossed = np.array([False] + [bool(o.get("tossed", False)) for o in scene.objects])
+    kind = np.where(tossed[scene.track_object], 2, 1)
+    return np.where(scene.track_object == 0, 0, kind).astype(np.int8)
 
 
 def scene_item(scene, index: int, eval_cfg) -> dict:
@@ -44,10 +54,12 @@ def scene_item(scene, index: int, eval_cfg) -> dict:
     seen = np.flatnonzero((~clip["occluded"]).any(axis=0))
     rng = np.random.default_rng([eval_cfg.seed, index])
     chosen = np.sort(rng.choice(seen, min(eval_cfg.num_tracks, seen.size), replace=False))
+    kinds = track_kinds(scene)
     return {"name": f"{scene.meta.get('preset', 'scene')}-{scene.meta.get('scene_index', index)}",
             "video": clip["rgb"], "tracks": clip["tracks"][:, chosen],
             "occluded": clip["occluded"][:, chosen],
-            "moving": None if clip["moving"] is None else clip["moving"][:, chosen]}
+            "moving": None if clip["moving"] is None else clip["moving"][:, chosen],
+            "track_kind": None if kinds is None else kinds[chosen]}
 
 
 def load_eval_scenes(source, eval_cfg) -> list[dict]:
@@ -69,6 +81,25 @@ def load_source(source: str, eval_cfg) -> tuple[list[dict], str]:
     return load_eval_scenes(text, eval_cfg), "shards"
 
 
+def track_item(tracker, item: dict, query_mode: str):
+    """Query `item`'s tracks by the benchmark's mode and track them.
+
+    Returns (query_points (M,3) as (t, y, x), index (M,) of the queried tracks, TrackResult), or
+    None when no track is visible.
+    """
+    query_points, index = sample_queries(item["occluded"], item["tracks"], query_mode)
+    if len(index) == 0:
+        log.warning("%s: no visible track to query; skipped", item["name"])
+        return None
+    return query_points, index, tracker.track(item["video"], query_points[:, [0, 2, 1]])  # (t,x,y)
+
+
+def mobility_counted(query_points: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """bool (T,M): the (frame, query) pairs D-ACC counts, every predicted one but the query frame."""
+    counted = np.arange(len(moving))[:, None] != query_points[None, :, 0]  # (T,M)
+    return counted & np.isfinite(moving)
+
+
 def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
     """Run `tracker.track` on every item; per-video TAP-Vid metrics, pooled D-ACC, an example.
 
@@ -77,12 +108,10 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
     per_video, correct = [], {"all": [0, 0], "moving": [0, 0], "static": [0, 0]}
     example = None
     for item in items:
-        query_points, index = sample_queries(item["occluded"], item["tracks"], query_mode)
-        if len(index) == 0:
-            log.warning("%s: no visible track to query; skipped", item["name"])
+        tracked = track_item(tracker, item, query_mode)
+        if tracked is None:
             continue
-        queries_txy = query_points[:, [0, 2, 1]]  # (M,3) (t, x, y)
-        result = tracker.track(item["video"], queries_txy)
+        query_points, index, result = tracked
         gt_tracks = item["tracks"][:, index].transpose(1, 0, 2)[None]  # (1,M,T,2)
         gt_occ = item["occluded"][:, index].T[None]  # (1,M,T)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -92,8 +121,7 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
                **{k: float(v[0]) for k, v in metrics.items()}}
         if item["moving"] is not None:
             gt_moving = item["moving"][:, index]  # (T,M)
-            counted = np.arange(len(gt_moving))[:, None] != query_points[None, :, 0]  # (T,M)
-            counted &= np.isfinite(result.moving)
+            counted = mobility_counted(query_points, result.moving)  # (T,M)
             pred = result.moving > 0.5
             for split, mask in (("all", counted), ("moving", counted & gt_moving),
                                 ("static", counted & ~gt_moving)):

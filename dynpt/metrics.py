@@ -86,3 +86,37 @@ def dynamic_accuracy(
     counted = np.ones_like(gt) if valid is None else np.asarray(valid).astype(bool)
     total = int(counted.sum())
     return float(np.sum((pred == gt) & counted) / total) if total else float("nan")
+
+
+def _scores_and_labels(scores, labels) -> tuple[np.ndarray, np.ndarray]:
+    scores, labels = np.asarray(scores, dtype=np.float64).ravel(), np.asarray(labels).astype(bool).ravel()
+    if scores.shape != labels.shape:
+        raise ValueError(f"scores {scores.shape} and labels {labels.shape} differ in size")
+    if not labels.any() or labels.all():
+        raise ValueError("ranking metrics need both positive and negative labels")
+    return scores, labels
+
+
+def average_precision(scores, labels) -> float:
+    """Area under the precision-recall curve of `scores` ranking `labels` (both any shape, one size):
+    sum over distinct score thresholds of (recall gained) x (precision there). Tied scores count
+    as one threshold. 1.0 for a perfect ranking; about the positive rate for a random one."""
+    scores, labels = _scores_and_labels(scores, labels)
+    order = np.argsort(-scores, kind="stable")
+    scores, labels = scores[order], labels[order]
+    last_of_tie = np.r_[scores[1:] != scores[:-1], True]  # (n,) end of each group of equal scores
+    true_pos = np.cumsum(labels)[last_of_tie]
+    precision = true_pos / (np.flatnonzero(last_of_tie) + 1)
+    recall_gained = np.diff(np.r_[0, true_pos]) / labels.sum()
+    return float(np.sum(recall_gained * precision))
+
+
+def roc_auc(scores, labels) -> float:
+    """Area under the ROC curve: the probability that a random positive scores above a random
+    negative (ties count one half), from the Mann-Whitney rank sum."""
+    from scipy.stats import rankdata
+
+    scores, labels = _scores_and_labels(scores, labels)
+    num_pos, num_neg = labels.sum(), (~labels).sum()
+    rank_sum = rankdata(scores)[labels].sum()  # average ranks for ties
+    return float((rank_sum - num_pos * (num_pos + 1) / 2) / (num_pos * num_neg))

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from c4d.cli import main
 from dynpt.checkpoint import save_checkpoint
-from dynpt.evaluate import evaluate_items, load_source
+from dynpt.evaluate import TRACK_KINDS, evaluate_items, load_source, track_kinds
 from dynpt.model import build_model
 from dynpt.tapvid_data import queries_first, queries_strided, read_tapvid
 from c4d.config import load_config
@@ -125,3 +125,12 @@ def test_zero_motion_baseline_scores_all_static_and_half_balanced():
     assert kind == "shards"
     assert s["d_acc_static"] == 1.0 and s["d_acc_moving"] == 0.0 and s["d_acc_balanced"] == 0.5
     assert 0 < s["d_acc"] < 1
+
+
+def test_track_kinds_from_the_scene_objects():
+    scene = SimpleNamespace(track_object=np.array([0, 1, 2, 0, 2], np.int32),
+                            objects=[{"tossed": False}, {"tossed": True}])
+    kinds = track_kinds(scene)
+    assert [TRACK_KINDS[k] for k in kinds] == ["background", "resting object", "tossed object",
+                                               "background", "tossed object"]
+    assert track_kinds(SimpleNamespace(track_object=scene.track_object, objects=None)) is None

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dynpt.metrics import THRESHOLDS_PX, dynamic_accuracy, tapvid_metrics
+from dynpt.metrics import THRESHOLDS_PX, average_precision, dynamic_accuracy, roc_auc, tapvid_metrics
 
 KEYS = {"occlusion_accuracy", "average_jaccard", "average_pts_within_thresh"} | {
     f"{name}_{d}" for name in ("pts_within", "jaccard") for d in THRESHOLDS_PX
@@ -121,3 +121,24 @@ def test_dynamic_accuracy_hand_cases():
     assert dynamic_accuracy(pred, gt, valid) == 1.0
     assert np.isnan(dynamic_accuracy(pred, gt, np.zeros_like(valid)))
     assert dynamic_accuracy(~gt, gt) == 0.0
+
+
+def test_ranking_metrics_hand_cases():
+    scores, labels = [0.9, 0.8, 0.7, 0.6], [True, False, True, False]
+    # recall 0.5 at precision 1, then recall 1 at precision 2/3
+    assert average_precision(scores, labels) == pytest.approx(0.5 * 1 + 0.5 * 2 / 3)
+    # positive-negative pairs ordered right: (0.9,0.8), (0.9,0.6), (0.7,0.6) of 4
+    assert roc_auc(scores, labels) == pytest.approx(3 / 4)
+    assert average_precision([0.2, 0.9, 0.1], [False, True, False]) == 1.0
+    assert roc_auc(np.array([[0.2, 0.9], [0.1, 0.8]]), np.array([[0, 1], [0, 1]])) == 1.0
+
+
+def test_ranking_metrics_ties_and_errors():
+    scores, labels = [0.5, 0.5, 0.1], [True, False, True]
+    # the tied pair is one threshold: recall 0.5 at precision 1/2, then recall 1 at 2/3
+    assert average_precision(scores, labels) == pytest.approx(0.5 * 0.5 + 0.5 * 2 / 3)
+    assert roc_auc(scores, labels) == pytest.approx((0.5 + 0.0) / 2)  # a tie counts one half
+    with pytest.raises(ValueError, match="both positive and negative"):
+        average_precision([0.1, 0.2], [False, False])
+    with pytest.raises(ValueError, match="differ in size"):
+        roc_auc([0.1, 0.2], [True])
