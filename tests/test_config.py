@@ -2,8 +2,9 @@
 
 import pytest
 
-from c4d.config import load_config, parse_overrides, to_dict
+from c4d.config import available_presets, load_config, parse_overrides, to_dict
 from c4d.errors import UserError
+from dynpt.model import build_model
 
 
 @pytest.fixture
@@ -86,3 +87,15 @@ def test_missing_and_invalid_files(tmp_path):
     loop.write_text("_base_: loop.yaml\n")
     with pytest.raises(UserError, match="inherits from itself"):
         load_config("datagen", loop)
+
+
+@pytest.mark.parametrize("group", ["c4d", "datagen", "demo", "dynpt", "inspect", "pointmaps"])
+def test_every_shipped_preset_loads(group):
+    """A typo in a shipped YAML (or a key its code no longer has) fails here, not at run time."""
+    names = available_presets(group)
+    assert names, f"configs/{group} has no presets"
+    for name in names:
+        cfg = load_config(group, name)
+        if group == "dynpt" and not cfg.model.encoder_3d.require_checkpoint:
+            model = build_model(cfg.model)  # the architecture the preset describes builds
+            assert model.parameter_counts()["trainable"] > 0
