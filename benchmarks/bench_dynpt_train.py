@@ -17,6 +17,9 @@ Usage:
   (frozen ViT-L with random weights, as no DUSt3R file is needed to time it), both on the same
   clip `--clip T,H,W,N` with batch 1; ratio full / tiny. The paper's clip (24,384,512,384) is
   far beyond a 2-core CPU for the full model; the default is a reduced 8,128,128,64.
+  `--models tiny,tiny-2x --clip 8,64,64,32` compares the demo's model with
+  configs/dynpt/tiny-cpu-2x.yaml, which gets the clip at twice the height and width (it trains
+  on 2x crops of the same videos).
 """
 
 from __future__ import annotations
@@ -37,11 +40,12 @@ import torch
 
 from c4d.config import load_config
 
-MODELS = {  # name -> (preset, overrides)
-    "tiny": ("tiny-cpu", []),
-    "cnn-only": ("paper-gpu-cnn-only", []),
+MODELS = {  # name -> (preset, overrides, frame size factor: the clip's H and W are multiplied by it)
+    "tiny": ("tiny-cpu", [], 1),
+    "tiny-2x": ("tiny-cpu-2x", [], 2),  # trains on crops twice the size of tiny's, same videos
+    "cnn-only": ("paper-gpu-cnn-only", [], 1),
     "full": ("paper-gpu", ["model.encoder_3d.random_init=true",
-                           "model.encoder_3d.require_checkpoint=false"]),
+                           "model.encoder_3d.require_checkpoint=false"], 1),
 }
 
 
@@ -107,12 +111,12 @@ def step_times(model: str, steps: int, clip: str) -> dict:
     from dynpt.losses import LossWeights, dynpt_loss
     from dynpt.model import build_model
 
-    preset, overrides = MODELS[model]
+    preset, overrides, size_factor = MODELS[model]
     cfg = load_config("dynpt", preset, overrides=overrides)
     net = build_model(cfg.model).train()
     opt = torch.optim.AdamW([p for p in net.parameters() if p.requires_grad], lr=1e-4)
     T, H, W, N = (int(v) for v in clip.split(","))
-    B = 1
+    H, W, B = H * size_factor, W * size_factor, 1
     gen = torch.Generator().manual_seed(0)
     video = torch.rand(B, T, 3, H, W, generator=gen) * 255
     queries = torch.rand(B, N, 3, generator=gen) * torch.tensor([T - 1, W - 1, H - 1])
