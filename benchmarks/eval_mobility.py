@@ -29,9 +29,10 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
+from c4d_pipeline.outputs import _save_text as save_text
 from dynpt.evaluate import TRACK_KINDS, load_eval_scenes, mobility_counted, track_item
 from dynpt.inference import load_tracker
-from dynpt.metrics import average_precision, roc_auc
+from dynpt.metrics import average_precision, dynamic_accuracy, roc_auc
 
 THRESHOLDS = np.round(np.arange(0.05, 0.96, 0.05), 2)
 
@@ -55,7 +56,7 @@ def score(tracker, items: list[dict]) -> dict[str, np.ndarray]:
 
 
 def d_acc(p: np.ndarray, moving: np.ndarray, threshold: float = 0.5) -> float:
-    return float(np.mean((p > threshold) == moving))
+    return dynamic_accuracy(p > threshold, moving)
 
 
 def best_threshold(p: np.ndarray, moving: np.ndarray) -> tuple[float, float]:
@@ -132,9 +133,7 @@ def main() -> None:
     text = "\n".join(overall) + "\n\n" + "\n".join(kinds) + "\n"
     print("\n" + text)
     if args.out:
-        tmp = args.out.with_name(args.out.name + ".tmp")
-        tmp.write_text(text)
-        tmp.replace(args.out)
+        save_text(args.out, text)
 
 
 if __name__ == "__main__":
