@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from c4d_pipeline.outputs import _save_text as save_text
+from c4d.files import write_text
 from dynpt.evaluate import TRACK_KINDS, load_eval_scenes, mobility_counted, track_item
 from dynpt.inference import load_tracker
 from dynpt.metrics import average_precision, dynamic_accuracy, roc_auc
@@ -133,7 +133,7 @@ def main() -> None:
     text = "\n".join(overall) + "\n\n" + "\n".join(kinds) + "\n"
     print("\n" + text)
     if args.out:
-        save_text(args.out, text)
+        write_text(args.out, text)
 
 
 if __name__ == "__main__":

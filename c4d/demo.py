@@ -28,6 +28,7 @@ import yaml
 from c4d.cli import run_subcommand
 from c4d.config import load_config, to_dict
 from c4d.errors import UserError
+from c4d.files import write_json
 
 log = logging.getLogger("c4d.demo")
 
@@ -45,12 +46,6 @@ def _c4d(*argv) -> None:
     argv = [str(a) for a in argv]
     log.info("$ c4d %s", " ".join(argv))
     run_subcommand(argv)
-
-
-def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=float))
-    tmp.replace(path)
 
 
 class Demo:
@@ -82,7 +77,7 @@ class Demo:
         start = time.perf_counter()
         record = step(folder)
         record["seconds"] = round(time.perf_counter() - start, 1)
-        _write_json(done, record)
+        write_json(done, record)
         log.info("[%s] finished in %.0f s", name, record["seconds"])
         return record
 
@@ -133,7 +128,7 @@ class Demo:
                 "dynpt": evaluate_items(tracker, items, "first")["summary"],
                 "zero_motion": evaluate_items(ZeroMotionBaseline(), items, "first")["summary"],
             }
-        _write_json(folder / "eval.json", results)
+        write_json(folder / "eval.json", results)
         return {"results": results, "file": str(folder / "eval.json")}
 
     # -- 4. reconstruct
@@ -169,7 +164,7 @@ class Demo:
                                     "tracker": checkpoint})
                 metrics[name][variant] = evaluate(read_reconstruction(target), scene)
                 outputs[name][variant] = str(target)
-        _write_json(folder / "metrics.json", metrics)
+        write_json(folder / "metrics.json", metrics)
         return {"source": str(source), "metrics": metrics, "outputs": outputs}
 
     # -- 5. pictures

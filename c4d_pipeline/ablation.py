@@ -32,12 +32,12 @@ import torch
 
 from c4d.config import load_config
 from c4d.errors import UserError
+from c4d.files import write_json, write_text
 from c4d_pipeline.eval_metrics import depth_metrics, mask_iou, pose_metrics
 from c4d_pipeline.flow import build_flow, resize_intrinsics, resize_nearest
 from c4d_pipeline.motion_mask import (MotionMaskConfig, correspondence_motion_masks,
                                       ground_truth_motion_masks, oracle_tracks)
 from c4d_pipeline.optimize import optimise
-from c4d_pipeline.outputs import _atomic
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from c4d_pipeline.scene_graph import graph_from_config
 from datagen.scene import Scene
@@ -199,18 +199,16 @@ def main(argv: list[str] | None = None) -> int:
                     log.info("%s: %d frames %dx%d", key, scene.num_frames, *scene.image_size)
                     runs[key] = ablate_scene(scene, args.preset, list(args.overrides), bias == "on",
                                              args.flow, args.masks, variants)
-                    text = json.dumps(runs[key], indent=1)
-                    _atomic(path, lambda fh: fh.write(text.encode()))
+                    write_json(path, runs[key], indent=1)
                     log.info("%s: ATE %s", key, ", ".join(
                         f"{v} {runs[key][v]['ate']:.4f}" for v in VARIANTS if v in runs[key]))
                 groups.setdefault(f"{group} scenes, static-world bias {bias}", []).append(key)
     tables = {title: mean_table(runs, keys) for title, keys in groups.items()}
     counts = {title: len(keys) for title, keys in groups.items()}
     summary = {"args": vars(args), "tables": tables, "counts": counts, "runs": runs}
-    text = json.dumps(summary, indent=1)
-    _atomic(out / "ablation.json", lambda fh: fh.write(text.encode()))
+    write_json(out / "ablation.json", summary, indent=1)
     md = markdown(tables, counts)
-    _atomic(out / "ablation.md", lambda fh: fh.write(md.encode()))
+    write_text(out / "ablation.md", md)
     print(md)
     return 0
 

@@ -23,7 +23,7 @@ from c4d_pipeline.motion_mask import ground_truth_motion_masks
 from c4d_pipeline.outputs import Reconstruction, read_reconstruction
 from datagen import read_scenes
 from datagen.scene import Scene
-from datagen.shards import write_json_atomic
+from c4d.files import write_json
 
 
 def check_reconstruction(recon: Reconstruction) -> None:
@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     result = {"pred": str(args.pred), "gt": str(args.gt), "scene_index": args.scene_index,
               "scene_meta": scene.meta, **evaluate(recon, scene, args.max_depth)}
     out = Path(args.out) if args.out else Path(args.pred) / "eval_recon.json"
-    write_json_atomic(out, result)
+    write_json(out, result)
     pose = result["pose"]
     print(f"frames {len(result['frame_indices'])} ({result['frame_indices_from']})")
     print(f"pose   ATE {pose['ate']:.4f}  RPE trans {pose['rpe_trans']:.4f}  RPE rot {pose['rpe_rot']:.3f} deg")

@@ -17,20 +17,18 @@ leaves a half-written file under a final name.
 
 from __future__ import annotations
 
-import io
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from PIL import Image
 
 from c4d.errors import UserError
+from c4d.files import atomic_path, json_default, write_bytes, write_text
 from datagen import geometry
 from datagen.visualize import colorize_depth
-from datagen.shards import json_default
 
 
 @dataclass
@@ -54,33 +52,19 @@ class Reconstruction:
         return int(self.depth.shape[0])
 
 
-def _atomic(path: Path, write: Callable[[io.BufferedWriter], None]) -> None:
-    """Write `path` through a temporary sibling and `os.replace` it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "wb") as fh:
-            write(fh)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def _save_png(path: Path, image: np.ndarray) -> None:
-    _atomic(path, lambda fh: Image.fromarray(image).save(fh, format="PNG"))
+    with atomic_path(path) as tmp:
+        Image.fromarray(image).save(tmp, format="PNG")
 
 
 def _save_npy(path: Path, array: np.ndarray) -> None:
-    _atomic(path, lambda fh: np.save(fh, array))
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.save(fh, array)
 
 
 def _save_npz(path: Path, **arrays: np.ndarray) -> None:
-    _atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
-
-
-def _save_text(path: Path, text: str) -> None:
-    _atomic(path, lambda fh: fh.write(text.encode()))
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
 
 
 
@@ -148,7 +132,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_str
         _save_npy(out / "depth" / f"{t:06d}.npy", rec.depth[t].astype(np.float32))
         _save_png(out / "depth" / f"{t:06d}.png", colorize_depth(rec.depth[t]))
         _save_png(out / "masks" / f"{t:06d}.png", (rec.masks[t] * 255).astype(np.uint8))
-    _save_text(out / "poses_tum.txt", tum_lines(rec.cam_to_world.astype(np.float64)))
+    write_text(out / "poses_tum.txt", tum_lines(rec.cam_to_world.astype(np.float64)))
     _save_npy(out / "intrinsics.npy", rec.intrinsics.astype(np.float32))
     _save_npz(out / "pointmaps.npz", points=rec.points.astype(np.float32),
               confidence=rec.confidence.astype(np.float32))
@@ -158,8 +142,8 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_str
         _save_npz(out / "tracks_3d.npz", tracks_world=rec.tracks_world.astype(np.float32),
                   valid=np.asarray(rec.tracks_valid, bool))
     pts, rgb = ply_points(rec, ply_pixel_stride, ply_static_frame_stride, ply_min_confidence)
-    _atomic(out / "scene.ply", lambda fh: fh.write(_ply_bytes(pts, rgb)))
-    _save_text(out / "report.json", json.dumps(rec.report, indent=1, default=json_default) + "\n")
+    write_bytes(out / "scene.ply", _ply_bytes(pts, rgb))
+    write_text(out / "report.json", json.dumps(rec.report, indent=1, default=json_default) + "\n")
     return out
 
 

@@ -34,8 +34,8 @@ from omegaconf import OmegaConf
 
 from c4d.config import to_dict
 from c4d.errors import UserError
+from c4d.files import atomic_path
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
-from c4d_pipeline.outputs import _atomic
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from datagen.shards import read_scenes
 
@@ -138,7 +138,8 @@ def constructor_string(cfg: Dust3rConfig, image_size: tuple[int, int]) -> str:
 def save_official(net: Dust3rNet, image_size: tuple[int, int], path: Path) -> Path:
     """Write `net` as an official DUSt3R-layout checkpoint (temporary name, then rename)."""
     args = argparse.Namespace(model=constructor_string(net.cfg, image_size))
-    _atomic(path, lambda fh: torch.save({"model": net.state_dict(), "args": args}, fh))
+    with atomic_path(path) as tmp:
+        torch.save({"model": net.state_dict(), "args": args}, tmp)
     return path
 
 
@@ -218,7 +219,8 @@ def train_pointmap_net(cfg, resume: bool = False) -> dict:
                 state = {"model": net.state_dict(), "optimizer": optimizer.state_dict(),
                          "schedule": schedule.state_dict(), "step": step,
                          "rng": rng.bit_generator.state, "config": to_dict(cfg)}
-                _atomic(state_path, lambda fh: torch.save(state, fh))
+                with atomic_path(state_path) as tmp:
+                    torch.save(state, tmp)
     if step < steps:
         log.info("stopped at step %d of %d; continue with --resume", step, steps)
         return {"checkpoint": None, "steps": step}

@@ -29,10 +29,10 @@ from tqdm import tqdm
 import datagen
 from c4d.config import available_presets, load_config, parse_overrides, to_dict
 from c4d.errors import UserError
+from c4d.files import disk_error, write_json
 from c4d.system import require_egl
 from datagen.jobs import SHARD_PATTERN, ShardPlan, resolve_task
-from datagen.shards import FORMAT_VERSION, KEY_PATTERN, ShardWriter, disk_error, encode_scene
-from datagen.shards import scene_key, write_json_atomic
+from datagen.shards import FORMAT_VERSION, KEY_PATTERN, ShardWriter, encode_scene, scene_key
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ def claim_directory(out: Path, record: dict[str, Any]) -> None:
                 "or choose a new --out"
             )
         return
-    write_json_atomic(path, record)
+    write_json(path, record)
 
 
 # --- scene generation, in this process or in spawned workers ------------------------------------

@@ -14,7 +14,6 @@ A field that is `None` has no member and decodes to `None`.
 
 from __future__ import annotations
 
-import errno
 import glob
 import io
 import json
@@ -28,6 +27,7 @@ import cv2
 import numpy as np
 
 from c4d.errors import UserError
+from c4d.files import disk_error, json_default
 from datagen.scene import Scene
 
 FORMAT_VERSION = 2  # 2: rgb as raw `rgb.npy` (decodes ~50x faster than 1's PNG, docs/perf)
@@ -173,16 +173,6 @@ def decode_segmentation(data: bytes, num_frames: int) -> np.ndarray:
 # --- JSON ---------------------------------------------------------------------------------------
 
 
-def json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
-
-
 def to_json_bytes(value: Any) -> bytes:
     """UTF-8 JSON; numpy scalars and arrays become numbers and lists, tuples become lists."""
     return json.dumps(value, default=json_default, ensure_ascii=False).encode("utf-8")
@@ -297,16 +287,6 @@ def _tar_info(name: str, size: int) -> tarfile.TarInfo:
     return info
 
 
-def disk_error(path: str | Path, exc: OSError) -> UserError:
-    """The `UserError` for a failed write of `path` (disk full, permissions, read-only disk)."""
-    if exc.errno == errno.ENOSPC:
-        return UserError(
-            f"no space left on the device while writing {path}; free some space or choose another "
-            "--out, then run the same command again: finished shards are kept"
-        )
-    return UserError(f"cannot write {path}: {exc.strerror or exc}; choose a writable --out")
-
-
 class ShardWriter:
     """Writes one shard under a temporary name and renames it into place on `close()`.
 
@@ -366,22 +346,6 @@ class ShardWriter:
             self.close()
         else:
             self.abort()
-
-
-def write_json_atomic(path: str | Path, value: Any) -> None:
-    """Write `value` as indented JSON to `path` through a temporary file and `os.replace`."""
-    path = Path(path)
-    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
-    try:
-        with open(partial, "w", encoding="utf-8") as f:
-            json.dump(value, f, indent=2, default=json_default)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(partial, path)
-    except OSError as exc:
-        partial.unlink(missing_ok=True)
-        raise disk_error(path, exc) from exc
 
 
 # --- reading ------------------------------------------------------------------------------------

@@ -20,6 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from c4d.files import atomic_path
+
 STATIC_COLOR = (40, 120, 255)  # RGB: points that stay put in the world
 MOVING_COLOR = (255, 50, 40)  # RGB: points whose world position changes
 TRACK_LEGEND = {"static": STATIC_COLOR, "moving": MOVING_COLOR}
@@ -376,21 +378,14 @@ def contact_sheet(
 _VIDEO_CODECS = {".mp4": "mp4v", ".webm": "VP80", ".avi": "MJPG"}
 
 
-def _temp_path(path: Path) -> Path:
-    """A sibling name with the same suffix, so writers still pick the format by extension."""
-    return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-
-
 def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     """Write an RGB uint8 (H,W,3) or grey (H,W) image; format from the extension (png, jpg)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     image = np.asarray(image, np.uint8)
     bgr = image[..., ::-1] if image.ndim == 3 else image
-    tmp = _temp_path(path)
-    if not cv2.imwrite(str(tmp), np.ascontiguousarray(bgr)):
-        raise OSError(f"could not write image {path}")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(bgr)):
+            raise OSError(f"could not write image {path}")
     return path
 
 
@@ -424,14 +419,20 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) 
     suffix = path.suffix.lower()
     if suffix != ".gif" and suffix not in _VIDEO_CODECS:
         raise ValueError(f"unknown video extension {suffix!r}: use .mp4, .webm, .avi or .gif")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_path(path)
+    with atomic_path(path) as tmp:
+        _encode_video(tmp, frames, fps)
+    return path
+
+
+def _encode_video(path: Path, frames: np.ndarray, fps: float) -> None:
+    """Encode RGB uint8 frames (T,H,W,3) to `path`, the codec chosen by its extension."""
+    suffix = path.suffix.lower()
     if suffix == ".gif":
         from PIL import Image
 
         images = [Image.fromarray(f) for f in frames]
         duration_ms = int(round(1000.0 / fps))
-        images[0].save(tmp, save_all=True, append_images=images[1:], duration=duration_ms, loop=0)
+        images[0].save(path, save_all=True, append_images=images[1:], duration=duration_ms, loop=0)
     else:
         pad_h, pad_w = frames.shape[1] % 2, frames.shape[2] % 2
         if pad_h or pad_w:
@@ -439,16 +440,14 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) 
         height, width = frames.shape[1:3]
         fourcc = cv2.VideoWriter_fourcc(*_VIDEO_CODECS[suffix])
         with _stderr_silenced():  # FFmpeg prints a warning about the VP8 tag, then maps it itself
-            writer = cv2.VideoWriter(str(tmp), fourcc, float(fps), (width, height))
+            writer = cv2.VideoWriter(str(path), fourcc, float(fps), (width, height))
         if not writer.isOpened():
-            raise OSError(f"OpenCV cannot encode {suffix} here; write .gif or .avi instead ({path})")
+            raise OSError(f"OpenCV cannot encode {suffix} here; write .gif or .avi instead")
         try:
             for frame in frames:
                 writer.write(np.ascontiguousarray(frame[..., ::-1]))
         finally:
             writer.release()
-    os.replace(tmp, path)
-    return path
 
 
 def read_video_frames(path: str | os.PathLike) -> np.ndarray:

@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from c4d.errors import UserError
+from c4d.files import atomic_path
 from dynpt.model import DynPT, build_model, plain_config
 
 log = logging.getLogger(__name__)
@@ -31,16 +32,11 @@ FORMAT = "dynpt-checkpoint-v1"
 def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dict | None = None) -> Path:
     """Write `model` (config + weights), `step` and `extra` to `path` atomically (temp + rename)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     payload = {"format": FORMAT, "config": model.config, "model": state, "step": int(step),
                "extra": extra or {}}
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(path) as tmp:
         torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

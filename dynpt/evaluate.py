@@ -10,7 +10,6 @@ frame itself, and is also reported separately on ground-truth moving and static 
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from pathlib import Path
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from c4d.errors import UserError
+from c4d.files import write_json, write_text
 from datagen.shards import list_shards, read_scenes
 from datagen.visualize import contact_sheet, draw_tracks_enlarged
 from dynpt.augment import resize_clip
@@ -184,14 +184,7 @@ def write_report(result: dict, baseline: dict, out_dir: str | Path, title: str,
     """`eval.json` (summary, per video, the zero-motion baseline's summary, `info`) and `eval.md`
     (both summaries) in `out_dir`, both atomically."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     payload = {"info": info, "summary": result["summary"], "per_video": result["per_video"],
                "zero_motion": baseline}
     table = markdown_table({"checkpoint": result["summary"], "zero motion, all static": baseline}, title)
-    paths = []
-    for name, text in (("eval.json", json.dumps(payload, indent=2) + "\n"), ("eval.md", table)):
-        tmp = out / f".{name}.tmp{os.getpid()}"
-        tmp.write_text(text)
-        os.replace(tmp, out / name)
-        paths.append(out / name)
-    return paths[0], paths[1]
+    return write_json(out / "eval.json", payload), write_text(out / "eval.md", table)

@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from c4d.errors import UserError
+from c4d.files import atomic_path
 from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
 from dynpt.model import DynPT
 from dynpt.query_sampling import sample_queries
@@ -37,11 +38,9 @@ class TrackResult:
     def save(self, path: str | os.PathLike) -> Path:
         """Write all arrays to an .npz file atomically."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.npz")
-        np.savez_compressed(tmp, tracks=self.tracks, visible=self.visible, confidence=self.confidence,
-                            moving=self.moving, queries=self.queries)
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, tracks=self.tracks, visible=self.visible,
+                                confidence=self.confidence, moving=self.moving, queries=self.queries)
         return path
 
 

@@ -90,10 +90,10 @@ def _run_check(args, cfg) -> int:
     print(f"checked {result.num_samples} scenes: {result.num_bad_samples} with problems "
           f"({len(result.problems)} problems)")
     if args.out is not None:
-        from datagen.shards import write_json_atomic
+        from c4d.files import write_json
 
         args.out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(args.out / "check.json", {
+        write_json(args.out / "check.json", {
             "source": args.source, "scenes": result.num_samples,
             "problems": [{"shard": s, "key": k, "problem": p} for s, k, p in result.problems]})
     return 1 if result.problems else 0

@@ -22,6 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from c4d.errors import UserError
+from c4d.files import write_json
 from c4d.inspect import html, plots
 from datagen import shards, visualize
 from datagen.scene import Scene
@@ -355,7 +356,7 @@ def build_dataset_report(source, out: str | Path, cfg, split: str | None = None,
         "samples": [{k: str(v) if isinstance(v, Path) else v for k, v in s.items()} for s in samples],
         "unreadable": [list(u) for u in unreadable],
     }
-    shards.write_json_atomic(out / "summary.json", summary)
+    write_json(out / "summary.json", summary)
     _write_dataset_page(out, summary, plot_path, samples, unreadable)
     return summary
 

@@ -11,6 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
 import numpy as np  # noqa: E402
 
+from c4d.files import atomic_path  # noqa: E402
 from datagen import visualize  # noqa: E402
 from datagen.scene import Scene  # noqa: E402
 
@@ -20,11 +21,11 @@ DPI = 100
 def _save(fig, path: str | os.PathLike) -> Path:
     """Save through a temporary name, close the figure, return the path."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-    fig.savefig(tmp, dpi=DPI)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=DPI)
+    finally:
+        plt.close(fig)
     return path
 
 

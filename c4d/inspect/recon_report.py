@@ -19,12 +19,12 @@ import numpy as np
 import trimesh
 
 from c4d.errors import UserError
+from c4d.files import write_json
 from c4d.inspect import html, plots, point_render
 from c4d_pipeline.cli_eval_recon import read_reconstruction, scene_frame_indices
 from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
 from c4d_pipeline.outputs import read_tum
 from datagen import geometry, visualize
-from datagen.shards import write_json_atomic
 
 MARKER_FILES = ("poses_tum.txt", "pointmaps.npz", "report.json")  # any one marks a reconstruction
 CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
@@ -385,7 +385,7 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
         "problems": recon.problems,
         "files": {k: str(v) for k, v in written.items()},
     }
-    write_json_atomic(out / "summary.json", summary)
+    write_json(out / "summary.json", summary)
     _write_page(out, recon, summary, written)
     return summary
 
