@@ -114,7 +114,7 @@ class Demo:
     # -- 3. eval
     def eval(self, folder: Path, checkpoint: str) -> dict:
         from dynpt.baselines import ZeroMotionBaseline
-        from dynpt.evaluate import evaluate_items, load_source
+        from dynpt.evaluate import d_acc_difference_interval, evaluate_items, load_source
         from dynpt.inference import load_tracker
 
         eval_cfg = load_config("dynpt", self.cfg.train.config, overrides=[
@@ -124,10 +124,10 @@ class Demo:
         results = {}
         for preset, source in self.val_dirs.items():
             items, _ = load_source(str(source), eval_cfg)
-            results[preset] = {
-                "dynpt": evaluate_items(tracker, items, "first")["summary"],
-                "zero_motion": evaluate_items(ZeroMotionBaseline(), items, "first")["summary"],
-            }
+            ours = evaluate_items(tracker, items, "first")
+            baseline = evaluate_items(ZeroMotionBaseline(), items, "first")
+            results[preset] = {"dynpt": ours["summary"], "zero_motion": baseline["summary"],
+                               "d_acc_interval": d_acc_difference_interval(ours, baseline)}
         write_json(folder / "eval.json", results)
         return {"results": results, "file": str(folder / "eval.json")}
 
@@ -195,14 +195,21 @@ def _pct(value) -> str:
 
 
 def _tracker_verdict(results: dict) -> list[str]:
-    """One line per metric saying, in points, whether DynPT beats the zero-motion baseline."""
+    """One line per metric saying, in points, whether DynPT beats the zero-motion baseline; for
+    D-ACC also the 95 % interval of the difference over the val scenes, and whether it excludes 0."""
     lines = []
     for key, label in (("d_acc", "D-ACC"), ("d_acc_balanced", "balanced D-ACC"),
                        ("average_jaccard", "AJ")):
         diffs = {p: 100 * (r["dynpt"][key] - r["zero_motion"][key]) for p, r in results.items()}
         verdict = "yes" if all(d > 0 for d in diffs.values()) else "no"
-        lines.append(f"- DynPT above the baseline on {label}: **{verdict}** ("
-                     + ", ".join(f"{p} {d:+.1f}" for p, d in diffs.items()) + " points)")
+        text = ", ".join(f"{p} {d:+.1f}" for p, d in diffs.items()) + " points"
+        intervals = {p: r[f"{key}_interval"] for p, r in results.items() if f"{key}_interval" in r}
+        if intervals:
+            text += "; 95 % interval over the val scenes: " + ", ".join(
+                f"{p} {100 * low:+.1f} to {100 * high:+.1f}" for p, (low, high) in intervals.items())
+            if verdict == "yes" and any(low <= 0 for low, _ in intervals.values()):
+                text += ", so within the scene-to-scene variation"
+        lines.append(f"- DynPT above the baseline on {label}: **{verdict}** ({text})")
     return lines
 
 

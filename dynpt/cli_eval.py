@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     items, kind = load_source(args.data, cfg)
     result = evaluate_items(tracker, items, args.mode)
     # The reference that gives the numbers a meaning: no motion, always visible, all static.
-    baseline = evaluate_items(ZeroMotionBaseline(), items, args.mode)["summary"]
+    baseline = evaluate_items(ZeroMotionBaseline(), items, args.mode)
     title = f"{Path(args.data).name} ({args.mode})"
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
     out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{args.mode}"

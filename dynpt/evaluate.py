@@ -21,7 +21,7 @@ from c4d.files import write_json, write_text
 from datagen.shards import list_shards, read_scenes
 from datagen.visualize import contact_sheet, draw_tracks_enlarged
 from dynpt.augment import resize_clip
-from dynpt.metrics import dynamic_accuracy, tapvid_metrics
+from dynpt.metrics import dynamic_accuracy, paired_bootstrap_interval, tapvid_metrics
 from dynpt.tapvid_data import read_tapvid, sample_queries
 
 log = logging.getLogger(__name__)
@@ -100,6 +100,9 @@ def mobility_counted(query_points: np.ndarray, moving: np.ndarray) -> np.ndarray
     return counted & np.isfinite(moving)
 
 
+PER_VIDEO_ONLY = ("name", "num_queries", "d_acc", "d_acc_right", "d_acc_counted")  # not averaged
+
+
 def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
     """Run `tracker.track` on every item; per-video TAP-Vid metrics, pooled D-ACC, an example.
 
@@ -128,6 +131,8 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
                 correct[split][0] += int(((pred == gt_moving) & mask).sum())
                 correct[split][1] += int(mask.sum())
             row["d_acc"] = dynamic_accuracy(pred, gt_moving, counted)
+            row["d_acc_right"] = int(((pred == gt_moving) & counted).sum())  # for intervals
+            row["d_acc_counted"] = int(counted.sum())
         per_video.append(row)
         if example is None:
             example = {"video": item["video"], "tracks": result.tracks, "visible": result.visible,
@@ -135,7 +140,7 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
     if not per_video:
         raise UserError("no evaluable video: every video lacks visible tracks")
     summary = {k: float(np.mean([r[k] for r in per_video]))
-               for k in per_video[0] if k not in ("name", "num_queries", "d_acc")}
+               for k in per_video[0] if k not in PER_VIDEO_ONLY}
     if items and items[0]["moving"] is not None:
         for split, key in (("all", "d_acc"), ("moving", "d_acc_moving"), ("static", "d_acc_static")):
             right, total = correct[split]
@@ -145,6 +150,20 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
         summary["d_acc_balanced"] = (summary["d_acc_moving"] + summary["d_acc_static"]) / 2
     summary["num_videos"] = len(per_video)
     return {"summary": summary, "per_video": per_video, "example": example}
+
+
+def d_acc_difference_interval(result: dict, baseline: dict, level: float = 0.95) -> list[float] | None:
+    """[low, high] (fractions) of pooled D-ACC of `result` minus `baseline`, both from
+    `evaluate_items` on the same videos, when the videos are resampled (paired bootstrap,
+    `dynpt.metrics.paired_bootstrap_interval`); None without mobility labels."""
+    theirs = {r["name"]: r for r in baseline["per_video"] if "d_acc_counted" in r}
+    pairs = [(r, theirs[r["name"]]) for r in result["per_video"] if r["name"] in theirs
+             and "d_acc_counted" in r]
+    if not pairs:
+        return None
+    a, b = zip(*pairs)
+    counts = [[r[k] for r in rows] for rows in (a, b) for k in ("d_acc_right", "d_acc_counted")]
+    return list(paired_bootstrap_interval(*counts, level=level))
 
 
 def evaluate_model(model, items: list[dict], eval_cfg, device, query_mode: str = "first") -> dict:
@@ -181,10 +200,18 @@ def markdown_table(rows: dict[str, dict], title: str) -> str:
 
 def write_report(result: dict, baseline: dict, out_dir: str | Path, title: str,
                  info: dict) -> tuple[Path, Path]:
-    """`eval.json` (summary, per video, the zero-motion baseline's summary, `info`) and `eval.md`
-    (both summaries) in `out_dir`, both atomically."""
+    """`eval.json` (summary, per video, the zero-motion baseline's summary and per video, the
+    interval of the D-ACC difference, `info`) and `eval.md` (both summaries, the interval) in
+    `out_dir`, both atomically. `result` and `baseline` come from `evaluate_items`."""
     out = Path(out_dir)
+    interval = d_acc_difference_interval(result, baseline)
     payload = {"info": info, "summary": result["summary"], "per_video": result["per_video"],
-               "zero_motion": baseline}
-    table = markdown_table({"checkpoint": result["summary"], "zero motion, all static": baseline}, title)
-    return write_json(out / "eval.json", payload), write_text(out / "eval.md", table)
+               "zero_motion": baseline["summary"], "zero_motion_per_video": baseline["per_video"],
+               "d_acc_difference_interval": interval}
+    text = markdown_table({"checkpoint": result["summary"],
+                           "zero motion, all static": baseline["summary"]}, title)
+    if interval is not None:
+        diff = 100 * (result["summary"]["d_acc"] - baseline["summary"]["d_acc"])
+        text += (f"\nD-ACC minus all-static: {diff:+.1f} points; 95 % interval over the videos "
+                 f"(paired bootstrap): {100 * interval[0]:+.1f} to {100 * interval[1]:+.1f}.\n")
+    return write_json(out / "eval.json", payload), write_text(out / "eval.md", text)

@@ -120,3 +120,26 @@ def roc_auc(scores, labels) -> float:
     num_pos, num_neg = labels.sum(), (~labels).sum()
     rank_sum = rankdata(scores)[labels].sum()  # average ranks for ties
     return float((rank_sum - num_pos * (num_pos + 1) / 2) / (num_pos * num_neg))
+
+
+def paired_bootstrap_interval(
+    correct_a, total_a, correct_b, total_b, level: float = 0.95, num_samples: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Percentile interval of the pooled accuracy difference A - B when videos are resampled.
+
+    Inputs are per-video counts (V,): entries scored right and entries counted, for two methods on
+    the same V videos. Each of `num_samples` draws picks V videos with replacement (the same ones
+    for both methods) and computes sum(correct_a)/sum(total_a) - sum(correct_b)/sum(total_b);
+    returns the (1-level)/2 and (1+level)/2 quantiles, as fractions. An interval that contains 0
+    means the difference is within the video-to-video variation.
+    """
+    counts = [np.asarray(c, dtype=np.float64) for c in (correct_a, total_a, correct_b, total_b)]
+    if len({c.shape for c in counts}) != 1 or counts[0].ndim != 1 or len(counts[0]) == 0:
+        raise ValueError("per-video counts must be four 1-D arrays of one non-zero length")
+    draws = np.random.default_rng(seed).integers(0, len(counts[0]), (num_samples, len(counts[0])))
+    ca, ta, cb, tb = (c[draws].sum(axis=1) for c in counts)  # (num_samples,) each
+    with np.errstate(invalid="ignore", divide="ignore"):
+        diff = ca / ta - cb / tb
+    low, high = np.nanquantile(diff, [(1 - level) / 2, (1 + level) / 2])
+    return float(low), float(high)

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from dynpt.metrics import THRESHOLDS_PX, average_precision, dynamic_accuracy, roc_auc, tapvid_metrics
+from dynpt.metrics import (THRESHOLDS_PX, average_precision, dynamic_accuracy, paired_bootstrap_interval,
+                           roc_auc, tapvid_metrics)
 
 KEYS = {"occlusion_accuracy", "average_jaccard", "average_pts_within_thresh"} | {
     f"{name}_{d}" for name in ("pts_within", "jaccard") for d in THRESHOLDS_PX
@@ -142,3 +143,21 @@ def test_ranking_metrics_ties_and_errors():
         average_precision([0.1, 0.2], [False, False])
     with pytest.raises(ValueError, match="differ in size"):
         roc_auc([0.1, 0.2], [True])
+
+
+def test_paired_bootstrap_interval_hand_cases():
+    total = np.array([10, 10, 10, 10])
+    # The same counts for both methods: every resample gives a difference of exactly 0.
+    assert paired_bootstrap_interval([9, 8, 7, 9], total, [9, 8, 7, 9], total) == (0.0, 0.0)
+    # A one point (of 10) better on every video: +0.1 whatever the videos drawn.
+    low, high = paired_bootstrap_interval([9, 8, 7, 9], total, [8, 7, 6, 8], total)
+    assert low == pytest.approx(0.1) and high == pytest.approx(0.1)
+    # A better on two videos, worse on two: the interval spans the per-video differences' range
+    # only partly, holds the pooled difference (0) and is the same for the same seed.
+    a, b = [10, 10, 5, 5], [5, 5, 10, 10]
+    low, high = paired_bootstrap_interval(a, total, b, total)
+    assert -0.5 <= low < 0 < high <= 0.5
+    assert (low, high) == paired_bootstrap_interval(a, total, b, total)
+    assert paired_bootstrap_interval(a, total, b, total, level=0.5)[1] < high  # narrower
+    with pytest.raises(ValueError, match="per-video counts"):
+        paired_bootstrap_interval([1, 2], [2, 2], [1], [2])
