@@ -8,7 +8,8 @@ Usage:
 Each --data is one set (comma-separated shard sources pooled); the scenes are read as `c4d eval`
 reads them (`eval.num_tracks` tracks per scene, queried at their first visible frame, the query
 frame not counted). Per checkpoint and set, over every counted (frame, query) pair:
-- D-ACC at p > 0.5 next to answering "static" everywhere; the best D-ACC over the thresholds
+- D-ACC at p > 0.5 next to answering "static" everywhere, and the 95 % interval of their
+  difference when the scenes are resampled (paired bootstrap); the best D-ACC over the thresholds
   0.05..0.95 (optimistic: the threshold is picked on the scenes it is scored on); average
   precision and ROC AUC of the mobility probability;
 - with --calibrate (one source per --data): the threshold with the best D-ACC on those scenes
@@ -32,16 +33,17 @@ from omegaconf import OmegaConf
 from c4d.files import write_text
 from dynpt.evaluate import TRACK_KINDS, load_eval_scenes, mobility_counted, track_item
 from dynpt.inference import load_tracker
-from dynpt.metrics import average_precision, dynamic_accuracy, roc_auc
+from dynpt.metrics import average_precision, dynamic_accuracy, paired_bootstrap_interval, roc_auc
 
 THRESHOLDS = np.round(np.arange(0.05, 0.96, 0.05), 2)
 
 
 def score(tracker, items: list[dict]) -> dict[str, np.ndarray]:
     """Per counted (frame, query) pair of every item, flat arrays: `p` mobility probability,
-    `moving` label, `kind` (index into TRACK_KINDS), `visible` (ground truth), `error` px."""
+    `moving` label, `kind` (index into TRACK_KINDS), `visible` (ground truth), `error` px,
+    `scene` (index of the item)."""
     parts = []
-    for item in items:
+    for scene, item in enumerate(items):
         tracked = track_item(tracker, item, "first")
         if tracked is None:
             continue
@@ -50,7 +52,8 @@ def score(tracker, items: list[dict]) -> dict[str, np.ndarray]:
         error = np.linalg.norm(result.tracks - item["tracks"][:, index], axis=-1)  # (T,M) px
         pairs = {"p": result.moving, "moving": item["moving"][:, index],
                  "kind": np.broadcast_to(item["track_kind"][index], counted.shape),
-                 "visible": ~item["occluded"][:, index], "error": error}
+                 "visible": ~item["occluded"][:, index], "error": error,
+                 "scene": np.full(counted.shape, scene)}
         parts.append({k: v[counted] for k, v in pairs.items()})
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
@@ -66,10 +69,21 @@ def best_threshold(p: np.ndarray, moving: np.ndarray) -> tuple[float, float]:
     return float(THRESHOLDS[i]), accs[i]
 
 
+def difference_interval(s: dict) -> tuple[float, float]:
+    """95 % interval of D-ACC (p > 0.5) minus all-static, scenes resampled (fractions)."""
+    scenes = np.unique(s["scene"], return_inverse=True)[1]
+    count = lambda weights: np.bincount(scenes, weights=weights.astype(np.float64))
+    total = count(np.ones_like(s["moving"]))
+    return paired_bootstrap_interval(count((s["p"] > 0.5) == s["moving"]), total,
+                                     count(~s["moving"]), total)
+
+
 def overall_line(s: dict, calibrated: float | None) -> str:
     threshold, best = best_threshold(s["p"], s["moving"])
+    low, high = difference_interval(s)
     cells = [f"{len(s['p'])}", f"{100 * s['moving'].mean():.1f}", f"{100 * d_acc(s['p'], s['moving']):.2f}",
-             f"{100 * (1 - s['moving'].mean()):.2f}", f"{100 * best:.2f} at {threshold}",
+             f"{100 * (1 - s['moving'].mean()):.2f}", f"{100 * low:+.2f} to {100 * high:+.2f}",
+             f"{100 * best:.2f} at {threshold}",
              f"{average_precision(s['p'], s['moving']):.3f}", f"{roc_auc(s['p'], s['moving']):.3f}"]
     if calibrated is not None:
         cells.append(f"{100 * d_acc(s['p'], s['moving'], calibrated):.2f} at {calibrated}")
@@ -114,7 +128,8 @@ def main() -> None:
     load = lambda sources: [it for src in sources.split(",") for it in load_eval_scenes(src, eval_cfg)]
     sets = [load(d) for d in args.data]
     calibration = [load(c) for c in args.calibrate]
-    head = ("| checkpoint | set | pairs | moving % | D-ACC (p>0.5) | all static | best D-ACC (threshold) "
+    head = ("| checkpoint | set | pairs | moving % | D-ACC (p>0.5) | all static | difference, 95 % interval "
+            "| best D-ACC (threshold) "
             "| AP | AUC |" + (" D-ACC at the calibrated threshold |" if calibration else ""))
     overall = [head, "|" + "---|" * (head.count("|") - 1)]
     kinds = ["| checkpoint | set | point on | pairs % | of the moving % | track error median / p90 px "
