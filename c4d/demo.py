@@ -251,7 +251,9 @@ def summary_markdown(records: dict) -> str:
                 for k in range(len(cells[0]))]
         lines.append(f"| mean | {variant} | " + " | ".join(_num(c) for c in mean) + " |")
     wins = sum(c[0] < g[0] for c, g in zip(rows["C4D"], rows["GA only"]))
-    lines += ["", f"C4D has the lower ATE than GA only in {wins} of {len(rows['C4D'])} scenes."]
+    lines += ["", f"C4D has the lower ATE than GA only in {wins} of {len(rows['C4D'])} scenes. Both "
+              "runs write the same motion masks (from the tracker and the flow, computed before the "
+              "optimisation, which GA only does not use), hence the same mask IoU."]
     lines += ["", f"Outputs: `{Path(rec['outputs']['scene-000']['C4D']).parent.parent}/scene-NNN/{{c4d,ga-only}}`", "",
               "## Pictures", ""]
     lines += [f"- {k.replace('_', ' ')}: `{v}`" for k, v in records["pictures"].items()
