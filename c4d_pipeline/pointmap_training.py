@@ -138,8 +138,8 @@ def constructor_string(cfg: Dust3rConfig, image_size: tuple[int, int]) -> str:
 def save_official(net: Dust3rNet, image_size: tuple[int, int], path: Path) -> Path:
     """Write `net` as an official DUSt3R-layout checkpoint (temporary name, then rename)."""
     args = argparse.Namespace(model=constructor_string(net.cfg, image_size))
-    with atomic_path(path) as tmp:
-        torch.save({"model": net.state_dict(), "args": args}, tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a handle: no temporary name inside
+        torch.save({"model": net.state_dict(), "args": args}, fh)
     return path
 
 
@@ -219,8 +219,8 @@ def train_pointmap_net(cfg, resume: bool = False) -> dict:
                 state = {"model": net.state_dict(), "optimizer": optimizer.state_dict(),
                          "schedule": schedule.state_dict(), "step": step,
                          "rng": rng.bit_generator.state, "config": to_dict(cfg)}
-                with atomic_path(state_path) as tmp:
-                    torch.save(state, tmp)
+                with atomic_path(state_path) as tmp, open(tmp, "wb") as fh:
+                    torch.save(state, fh)
     if step < steps:
         log.info("stopped at step %d of %d; continue with --resume", step, steps)
         return {"checkpoint": None, "steps": step}

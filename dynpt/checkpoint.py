@@ -35,8 +35,8 @@ def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dic
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     payload = {"format": FORMAT, "config": model.config, "model": state, "step": int(step),
                "extra": extra or {}}
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a handle: no temporary name inside
+        torch.save(payload, fh)
     return path
 
 

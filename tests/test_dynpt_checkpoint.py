@@ -74,7 +74,7 @@ def test_failed_save_keeps_the_previous_file(tmp_path, monkeypatch):
     path = save_checkpoint(tmp_path / "ckpt.pt", make_model(), step=1)
 
     def broken_save(obj, f, *a, **k):
-        open(f, "wb").write(b"partial")
+        f.write(b"partial")
         raise OSError("disk full")
 
     monkeypatch.setattr(torch, "save", broken_save)
