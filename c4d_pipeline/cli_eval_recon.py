@@ -18,12 +18,12 @@ import cv2
 import numpy as np
 
 from c4d.errors import UserError
+from c4d.files import write_json
 from c4d_pipeline.eval_metrics import DEPTH_ALIGNMENTS, depth_metrics, mask_iou, pose_metrics
 from c4d_pipeline.motion_mask import ground_truth_motion_masks
 from c4d_pipeline.outputs import Reconstruction, read_reconstruction
 from datagen import read_scenes
 from datagen.scene import Scene
-from c4d.files import write_json
 
 
 def check_reconstruction(recon: Reconstruction) -> None:

@@ -26,7 +26,7 @@ import numpy as np
 from PIL import Image
 
 from c4d.errors import UserError
-from c4d.files import atomic_path, json_default, write_bytes, write_text
+from c4d.files import atomic_path, write_bytes, write_json, write_text
 from datagen import geometry
 from datagen.visualize import colorize_depth
 
@@ -143,7 +143,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_str
                   valid=np.asarray(rec.tracks_valid, bool))
     pts, rgb = ply_points(rec, ply_pixel_stride, ply_static_frame_stride, ply_min_confidence)
     write_bytes(out / "scene.ply", _ply_bytes(pts, rgb))
-    write_text(out / "report.json", json.dumps(rec.report, indent=1, default=json_default) + "\n")
+    write_json(out / "report.json", rec.report, indent=1)
     return out
 
 

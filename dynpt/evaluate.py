@@ -108,7 +108,7 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
 
     Returns {'summary': {key: float}, 'per_video': [{name, metrics...}], 'example': {...}}.
     """
-    per_video, correct = [], {"all": [0, 0], "moving": [0, 0], "static": [0, 0]}
+    per_video, correct = [], {"moving": [0, 0], "static": [0, 0]}  # split -> [right, counted]
     example = None
     for item in items:
         tracked = track_item(tracker, item, query_mode)
@@ -126,12 +126,11 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
             gt_moving = item["moving"][:, index]  # (T,M)
             counted = mobility_counted(query_points, result.moving)  # (T,M)
             pred = result.moving > 0.5
-            for split, mask in (("all", counted), ("moving", counted & gt_moving),
-                                ("static", counted & ~gt_moving)):
+            for split, mask in (("moving", counted & gt_moving), ("static", counted & ~gt_moving)):
                 correct[split][0] += int(((pred == gt_moving) & mask).sum())
                 correct[split][1] += int(mask.sum())
             row["d_acc"] = dynamic_accuracy(pred, gt_moving, counted)
-            row["d_acc_right"] = int(((pred == gt_moving) & counted).sum())  # for intervals
+            row["d_acc_right"] = int(((pred == gt_moving) & counted).sum())  # pooled, and intervals
             row["d_acc_counted"] = int(counted.sum())
         per_video.append(row)
         if example is None:
@@ -142,6 +141,8 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
     summary = {k: float(np.mean([r[k] for r in per_video]))
                for k in per_video[0] if k not in PER_VIDEO_ONLY}
     if items and items[0]["moving"] is not None:
+        correct["all"] = [sum(r["d_acc_right"] for r in per_video),
+                          sum(r["d_acc_counted"] for r in per_video)]
         for split, key in (("all", "d_acc"), ("moving", "d_acc_moving"), ("static", "d_acc_static")):
             right, total = correct[split]
             summary[key] = right / total if total else float("nan")

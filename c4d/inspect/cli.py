@@ -92,7 +92,6 @@ def _run_check(args, cfg) -> int:
     if args.out is not None:
         from c4d.files import write_json
 
-        args.out.mkdir(parents=True, exist_ok=True)
         write_json(args.out / "check.json", {
             "source": args.source, "scenes": result.num_samples,
             "problems": [{"shard": s, "key": k, "problem": p} for s, k, p in result.problems]})
