@@ -15,6 +15,7 @@ import traceback
 
 from c4d import __version__
 from c4d.errors import UserError
+from c4d.system import configure_threads, prepare_openmp, set_thread_override
 
 # name -> (module, one-line help), in the order of the data flow.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -51,6 +52,11 @@ def build_parser(chosen: str | None) -> argparse.ArgumentParser:
             "-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
             help="debug logging and full tracebacks",
         )
+        sub.add_argument(
+            "--threads", type=int, default=argparse.SUPPRESS, metavar="N",
+            help="intra-op CPU threads of this process (default: the usable cores minus the "
+            "worker processes the command starts; also the config key `threads`)",
+        )
         if name == chosen:
             importlib.import_module(module_name).add_arguments(sub)
     return parser
@@ -77,14 +83,22 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
 
 
 def run_subcommand(argv: list[str]) -> int:
-    """Parse `argv` and run its subcommand; exceptions propagate (for callers such as `c4d demo`)."""
+    """Parse `argv` and run its subcommand; exceptions propagate (for callers such as `c4d demo`).
+
+    Sets the process's CPU threads first (`c4d.system.configure_threads`); a command that starts
+    worker processes sets them again, leaving a core to each worker."""
     args = parse_arguments(argv)
+    if getattr(args, "threads", None) is not None:
+        set_thread_override(args.threads)
+    configure_threads()
     return int(importlib.import_module(SUBCOMMANDS[args.command][0]).run(args) or 0)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     verbose = "-v" in argv or "--verbose" in argv
+    prepare_openmp()  # before any subcommand imports torch
+    set_thread_override(None)
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose else "%(message)s",

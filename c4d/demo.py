@@ -29,6 +29,7 @@ from c4d.cli import run_subcommand
 from c4d.config import load_config, to_dict
 from c4d.errors import UserError
 from c4d.files import write_json
+from c4d.system import configure_threads
 
 log = logging.getLogger("c4d.demo")
 
@@ -73,6 +74,7 @@ class Demo:
             log.info("[%s] done before, skipped (delete %s to redo it)", name, folder)
             return json.loads(done.read_text())
         log.info("[%s] ...", name)
+        configure_threads()  # a step's subcommands may have left fewer (for their workers)
         folder.mkdir(parents=True, exist_ok=True)
         start = time.perf_counter()
         record = step(folder)

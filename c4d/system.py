@@ -1,9 +1,13 @@
-"""Checks of the system libraries the project needs, with messages that say how to fix them."""
+"""The system under the project: library checks with messages that say how to fix them, and the
+CPU threads every command uses (`configure_threads`)."""
 
 from __future__ import annotations
 
 import ctypes.util
+import math
 import os
+import sys
+from pathlib import Path
 
 from c4d.errors import UserError
 
@@ -26,3 +30,87 @@ def require_egl() -> None:
         )
     if ctypes.util.find_library("EGL") is None:
         raise UserError(f"libEGL was not found, so nothing can be rendered: {EGL_HELP}")
+
+
+# --- CPU threads ---------------------------------------------------------------------------------
+
+# Libraries that size their own thread pools from these variables when they first load.
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "LP_NUM_THREADS")
+_override: dict[str, int] = {}
+
+
+def prepare_openmp() -> None:
+    """Make idle OpenMP threads sleep instead of spinning (`OMP_WAIT_POLICY=PASSIVE`, unless set).
+
+    Must run before torch is imported (OpenMP reads it once). A spinning thread that waits for a
+    peer the OS has descheduled burns the core that peer needs: on a machine shared with other
+    CPU-bound processes that alone made training steps 4-6x slower (docs/perf/threads.md).
+    """
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def _cgroup_cpu_limit(root: Path = Path("/sys/fs/cgroup")) -> float | None:
+    """CPUs granted by the cgroup quota (v2 `cpu.max`, v1 `cpu.cfs_quota_us`), None if unlimited."""
+    try:
+        quota, period = (root / "cpu.max").read_text().split()[:2]
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        pass
+    try:
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        return None if quota <= 0 else quota / period
+    except (OSError, ValueError):
+        return None
+
+
+def available_cpus(cgroup_root: Path = Path("/sys/fs/cgroup")) -> int:
+    """CPU cores this process may use: its affinity mask, capped by a cgroup CPU quota (rounded
+    up), divided among the local ranks of a `torchrun` job (`LOCAL_WORLD_SIZE`). At least 1."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    quota = _cgroup_cpu_limit(cgroup_root)
+    if quota is not None:
+        cpus = min(cpus, math.ceil(quota))
+    ranks = int(os.environ.get("LOCAL_WORLD_SIZE", "1") or 1)
+    return max(1, cpus // max(ranks, 1))
+
+
+def set_thread_override(threads: int | None) -> None:
+    """Remember a user's `--threads`/`threads=` choice (None or 0: automatic) for this process."""
+    if threads is not None and threads < 0:
+        raise UserError(f"--threads must be 0 (automatic) or a positive count, got {threads}")
+    _override.clear()
+    if threads:
+        _override["threads"] = int(threads)
+
+
+def configure_threads(workers: int = 0, threads: int | None = None) -> int:
+    """Set this process's intra-op thread count (torch, OpenCV) and return it.
+
+    workers: single-threaded worker processes this command starts beside this one (data loader or
+    scene generation workers); they get a core each and this process the rest, at least one.
+    threads: an explicit count (a config's `threads` key; 0 or None: automatic); otherwise the
+    count given to `set_thread_override` (the `--threads` flag), otherwise automatic.
+    Libraries that start later (and child processes) inherit the count through OMP_NUM_THREADS etc.
+    """
+    count = threads or _override.get("threads") or max(1, available_cpus() - workers)
+    _set_threads(count)
+    return count
+
+
+def init_worker_threads(*_args) -> None:
+    """Initializer of a worker process (DataLoader `worker_init_fn`, process pools): one thread."""
+    _set_threads(1)
+
+
+def _set_threads(count: int) -> None:
+    for name in _THREAD_VARIABLES:
+        os.environ[name] = str(count)
+    if "torch" in sys.modules:
+        import torch
+
+        torch.set_num_threads(count)
+    if "cv2" in sys.modules:
+        import cv2
+
+        cv2.setNumThreads(count)

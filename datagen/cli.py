@@ -30,7 +30,7 @@ import datagen
 from c4d.config import available_presets, load_config, parse_overrides, to_dict
 from c4d.errors import UserError
 from c4d.files import disk_error, write_json
-from c4d.system import require_egl
+from c4d.system import configure_threads, init_worker_threads, require_egl
 from datagen.jobs import SHARD_PATTERN, ShardPlan, resolve_task
 from datagen.shards import FORMAT_VERSION, KEY_PATTERN, ShardWriter, encode_scene, scene_key
 
@@ -158,7 +158,9 @@ _worker: dict[str, Any] = {}
 
 
 def _init_worker(cfg) -> None:
-    """Worker initializer: keep the config; the assets load with the first scene."""
+    """Worker initializer: one thread (the workers share the cores); keep the config; the assets
+    load with the first scene."""
+    init_worker_threads()
     _worker["cfg"] = cfg
 
 
@@ -224,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
     require_egl()
+    configure_threads(workers=args.workers if args.workers > 1 else 0)
     from datagen.assets import load_asset_library
 
     load_asset_library(cfg)  # cheap; fails early on an unreadable assets or backgrounds folder

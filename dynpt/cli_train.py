@@ -10,6 +10,7 @@ import argparse
 import sys
 
 from c4d.config import add_training_arguments, load_config
+from c4d.system import configure_threads
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -20,6 +21,7 @@ def run(args: argparse.Namespace) -> int:
     from dynpt.train import train
 
     cfg = load_config("dynpt", args.config, overrides=args.overrides)
+    configure_threads(workers=cfg.data.num_workers, threads=cfg.threads)
     train(cfg, resume=args.resume)
     return 0
 
