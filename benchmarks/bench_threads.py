@@ -1,23 +1,28 @@
-"""Benchmark of CPU threads on a busy machine: `c4d demo --quick` and a training run, with
+"""Benchmark of CPU threads on a busy machine: training steps and `c4d demo --quick`, with
 `--hogs` CPU-bound processes running beside them, for two checkouts of the project.
 
     .venv/bin/python benchmarks/bench_threads.py --before /tmp/before [--after .] \
-        [--repeats 3] [--demo-repeats 2] [--steps 300] [--hogs 1] [--work /tmp/bench-threads]
+        [--repeats 3] [--budget 150] [--hogs 1] [--demo-budget 900] [--work /tmp/bench-threads]
 
 `--before` is a checkout of the code to compare against (e.g. `git worktree add /tmp/before
-<commit>`). The runs are interleaved (before, after, before, after, ...) so that both see the same
-background load; each is a fresh process (`python -m c4d ...` with PYTHONPATH set to its checkout)
-timed in wall seconds and CPU seconds (user + system of the command and its children). One `after`
-run without the hogs gives the reference the share is measured against: with one hog on a 2-core
-machine, the command's share is half the machine, so about 2x its unloaded wall time is "its
-share". Prints a markdown table of medians.
+<commit>`). Every run is a fresh process (`python -m c4d ...` with PYTHONPATH set to its
+checkout and no OMP_* variables, so each checkout chooses its own threads).
+
+1. Training: `c4d train --config tiny-cpu` (300 steps asked) runs for a fixed `--budget` of wall
+   seconds and is then stopped; the figure is the steps it completed (log.jsonl lines), so a slow
+   variant costs no more time than a fast one. Runs are interleaved (before, after, after,
+   before, ...) so that both see the same background load; medians over `--repeats`.
+2. The same for `after` without the hogs: the reference for "its share". With one hog on a
+   2-core machine the command's fair share is half the machine, so about half the unloaded steps.
+3. `c4d demo --quick` once per variant with the hogs, each stopped after `--demo-budget` seconds
+   (the table then says it did not finish, and which step it was in).
+Prints markdown tables.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import resource
 import shutil
 import statistics
 import subprocess
@@ -26,18 +31,24 @@ import time
 from pathlib import Path
 
 
-def timed(cmd: list[str], checkout: Path, log: Path) -> tuple[float, float]:
-    """(wall s, CPU s) of `cmd` run from `checkout`; its output goes to `log`."""
+def run_for(cmd: list[str], checkout: Path, log: Path, budget: float) -> tuple[float, bool]:
+    """Run `cmd` from `checkout` for at most `budget` s; (wall s, finished)."""
     env = {**os.environ, "PYTHONPATH": str(checkout), "PYOPENGL_PLATFORM": "egl"}
     for name in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        env.pop(name, None)  # each checkout chooses its own threads
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        env.pop(name, None)
     start = time.perf_counter()
     with open(log, "w") as out:
-        subprocess.run(cmd, cwd=checkout, env=env, stdout=out, stderr=subprocess.STDOUT, check=True)
-    wall = time.perf_counter() - start
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        proc = subprocess.Popen(cmd, cwd=checkout, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        try:
+            code = proc.wait(timeout=budget)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, 9)  # the command and its workers
+            proc.wait()
+            return time.perf_counter() - start, False
+    if code:
+        raise SystemExit(f"{' '.join(cmd)} failed ({code}); see {log}")
+    return time.perf_counter() - start, True
 
 
 class Hogs:
@@ -62,52 +73,57 @@ def main() -> None:
     parser.add_argument("--before", type=Path, required=True, help="checkout of the old code")
     parser.add_argument("--after", type=Path, default=Path(__file__).resolve().parents[1])
     parser.add_argument("--repeats", type=int, default=3, help="training runs per variant")
-    parser.add_argument("--demo-repeats", type=int, default=2, help="demo --quick runs per variant")
-    parser.add_argument("--steps", type=int, default=300, help="training steps (tiny-cpu)")
+    parser.add_argument("--budget", type=float, default=150, help="wall seconds per training run")
+    parser.add_argument("--demo-budget", type=float, default=900, help="wall seconds per demo run")
     parser.add_argument("--hogs", type=int, default=1, help="CPU-bound processes beside the runs")
     parser.add_argument("--work", type=Path, default=Path("/tmp/bench-threads"))
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     python = [sys.executable, "-m", "c4d"]
+    checkouts = {"before": args.before.resolve(), "after": args.after.resolve()}
     data = args.work / "data"
     if not data.exists():
-        timed([*python, "datagen", "--preset", "movi-e", "--num-scenes", "8", "--out", str(data),
-               "--resolution", "48x48", "--frames", "8", "--scenes-per-shard", "4", "--workers", "1"],
-              args.after, args.work / "datagen.log")
+        run_for([*python, "datagen", "--preset", "movi-e", "--num-scenes", "8", "--out", str(data),
+                 "--resolution", "48x48", "--frames", "8", "--scenes-per-shard", "4", "--workers", "1"],
+                checkouts["after"], args.work / "datagen.log", 3600)
 
-    def train(checkout: Path, run: str) -> list[str]:
-        shutil.rmtree(args.work / run, ignore_errors=True)
-        return [*python, "train", "--config", "tiny-cpu", f"data.sources=[{data}]",
-                f"train.steps={args.steps}", f"train.out_dir={args.work / run}", "eval.every=0"]
+    def train(variant: str, hogs: int, i: int) -> int:
+        out = args.work / f"train-{variant}-{hogs}-{i}"
+        shutil.rmtree(out, ignore_errors=True)
+        run_for([*python, "train", "--config", "tiny-cpu", f"data.sources=[{data}]",
+                 "train.steps=300", f"train.out_dir={out}", "eval.every=0"],
+                checkouts[variant], out.with_suffix(".log"), args.budget)
+        log = out / "log.jsonl"
+        steps = len(log.read_text().splitlines()) if log.exists() else 0
+        print(f"train {variant} hogs={hogs} #{i}: {steps} steps in {args.budget:.0f} s", flush=True)
+        return steps
 
-    def demo(checkout: Path, run: str) -> list[str]:
-        shutil.rmtree(args.work / run, ignore_errors=True)
-        return [*python, "demo", "--quick", "--out", str(args.work / run)]
+    steps: dict[str, list[int]] = {}
+    for i in range(args.repeats):
+        for variant in (("before", "after") if i % 2 == 0 else ("after", "before")):
+            with Hogs(args.hogs):
+                steps.setdefault(f"{variant}, {args.hogs} hog(s)", []).append(train(variant, args.hogs, i))
+        steps.setdefault("after, no hog", []).append(train("after", 0, i))
+    load = " ".join(f"{v:.1f}" for v in os.getloadavg())
+    print(f"\ntraining, tiny-cpu, {args.budget:.0f} s per run; load average {load} on "
+          f"{os.cpu_count()} cores\n")
+    print("| variant | runs | steps done (median) | each run |")
+    print("|---|---|---|---|")
+    for variant, counts in steps.items():
+        print(f"| {variant} | {len(counts)} | {statistics.median(counts):g} | "
+              f"{', '.join(map(str, counts))} |")
 
-    checkouts = {"before": args.before.resolve(), "after": args.after.resolve()}
-    results: dict[tuple[str, str], list[tuple[float, float]]] = {}
-    for job, make, repeats in (("train", train, args.repeats), ("demo --quick", demo, args.demo_repeats)):
-        name = job.split()[0]
-        for i in range(repeats):
-            for variant in (("before", "after") if i % 2 == 0 else ("after", "before")):
-                with Hogs(args.hogs):
-                    res = timed(make(checkouts[variant], f"{name}-{variant}"), checkouts[variant],
-                                args.work / f"{name}-{variant}-{i}.log")
-                results.setdefault((job, f"{variant}, {args.hogs} hog(s)"), []).append(res)
-                print(job, variant, i, f"{res[0]:.1f} s wall, {res[1]:.1f} CPU-s", flush=True)
-        res = timed(make(checkouts["after"], f"{name}-alone"), checkouts["after"],
-                    args.work / f"{name}-alone.log")
-        results[(job, "after, no hog")] = [res]
-        print(job, "after alone", f"{res[0]:.1f} s wall, {res[1]:.1f} CPU-s", flush=True)
-
-    print(f"\nload average at the end {' '.join(f'{v:.1f}' for v in os.getloadavg())} on "
-          f"{os.cpu_count()} cores; {args.steps} tiny-cpu steps; medians\n")
-    print("| command | variant | runs | wall s | CPU s |")
-    print("|---|---|---|---|---|")
-    for (job, variant), runs in results.items():
-        wall = statistics.median(r[0] for r in runs)
-        cpu = statistics.median(r[1] for r in runs)
-        print(f"| {job} | {variant} | {len(runs)} | {wall:.1f} | {cpu:.1f} |")
+    print("\n| demo --quick, with hogs | wall s | finished |")
+    print("|---|---|---|")
+    for variant in ("after", "before"):
+        out = args.work / f"demo-{variant}"
+        shutil.rmtree(out, ignore_errors=True)
+        with Hogs(args.hogs):
+            wall, finished = run_for([*python, "demo", "--quick", "--out", str(out)], checkouts[variant],
+                                     args.work / f"demo-{variant}.log", args.demo_budget)
+        done = sorted(p.parent.name for p in out.glob("*/done.json"))
+        state = "yes" if finished else f"no (steps done: {', '.join(done) or 'none'})"
+        print(f"| {variant} | {wall:.0f} | {state} |", flush=True)
 
 
 if __name__ == "__main__":

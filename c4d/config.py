@@ -143,7 +143,7 @@ def add_training_arguments(parser, group: str, default: str | None = None) -> No
                         help=f"a preset of configs/{group} ({', '.join(available_presets(group))}) or "
                         "a YAML path" + (f"; default {default}" if default else ""))
     parser.add_argument("--resume", action="store_true",
-                        help="continue the run in train.out_dir where it stopped")
+                        help="continue the run in train.out_dir where it stopped, with the config saved there")
     parser.add_argument("overrides", nargs="*", metavar="key=value",
                         help="config overrides, e.g. data.sources=[shards/train] train.steps=1000")
 
@@ -151,3 +151,14 @@ def add_training_arguments(parser, group: str, default: str | None = None) -> No
 def to_dict(cfg: DictConfig) -> dict:
     """A plain, YAML-serialisable copy of a config (for checkpoints, meta and reports)."""
     return OmegaConf.to_container(cfg, resolve=True)
+
+
+def training_config(group: str, args) -> DictConfig:
+    """The config of a training command (`args` from `add_training_arguments`): the preset with the
+    overrides; with `--resume`, the run folder's resolved `train.out_dir/config.yaml` with the
+    command line's overrides over it, so `--resume` and the run's folder are enough to continue."""
+    cfg = load_config(group, args.config, overrides=args.overrides)
+    saved = Path(cfg.train.out_dir) / "config.yaml"
+    if args.resume and saved.is_file():
+        cfg = load_config(group, saved, overrides=args.overrides)
+    return cfg

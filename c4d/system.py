@@ -37,6 +37,8 @@ def require_egl() -> None:
 # Libraries that size their own thread pools from these variables when they first load.
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "LP_NUM_THREADS")
 _override: dict[str, int] = {}
+# OMP_NUM_THREADS as the user set it before this process changed it (None: not set).
+_USER_OMP = os.environ.get("OMP_NUM_THREADS")
 
 
 def prepare_openmp() -> None:
@@ -90,12 +92,21 @@ def configure_threads(workers: int = 0, threads: int | None = None) -> int:
     workers: single-threaded worker processes this command starts beside this one (data loader or
     scene generation workers); they get a core each and this process the rest, at least one.
     threads: an explicit count (a config's `threads` key; 0 or None: automatic); otherwise the
-    count given to `set_thread_override` (the `--threads` flag), otherwise automatic.
+    count given to `set_thread_override` (the `--threads` flag), otherwise the user's
+    OMP_NUM_THREADS, otherwise automatic.
     Libraries that start later (and child processes) inherit the count through OMP_NUM_THREADS etc.
     """
-    count = threads or _override.get("threads") or max(1, available_cpus() - workers)
+    count = (threads or _override.get("threads") or _user_omp_threads()
+             or max(1, available_cpus() - workers))
     _set_threads(count)
     return count
+
+
+def _user_omp_threads() -> int | None:
+    try:
+        return max(1, int(_USER_OMP)) if _USER_OMP else None
+    except ValueError:
+        return None
 
 
 def init_worker_threads(*_args) -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from c4d.config import add_training_arguments, load_config
+from c4d.config import add_training_arguments, training_config
 from c4d.system import configure_threads
 
 
@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from c4d_pipeline.pointmap_training import train_pointmap_net
 
-    cfg = load_config("pointmaps", args.config, overrides=args.overrides)
+    cfg = training_config("pointmaps", args)
     configure_threads(threads=cfg.threads)
     train_pointmap_net(cfg, resume=args.resume)
     return 0

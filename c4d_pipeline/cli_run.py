@@ -128,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
         "crop_xy": list(video.preprocessing.crop_xy), "grid_size": args.grid_size,
         "seconds_before_reconstruction": seconds,
     }
-    rec = reconstruct(frames, source, flow, tracks, cfg, out, inputs=inputs)
+    rec = reconstruct(frames, source, flow, tracks, cfg, out, inputs={**inputs, "fps": video.fps},
+                      timestamps=video.timestamps)
     stage_seconds = rec.report["seconds"]
     log.info("wrote %s (%s)", out, ", ".join(f"{k} {v:.1f}s" for k, v in {**seconds, **stage_seconds}.items()))
     return 0

@@ -4,7 +4,8 @@ OUT/
   frames/%06d.png            the frames used (uint8 RGB)
   depth/%06d.npy (+ .png)    float32 z-depth (+ colourised inverse depth, for looking at)
   masks/%06d.png             motion mask, 255 = dynamic
-  poses_tum.txt              `timestamp tx ty tz qx qy qz qw`, camera-to-world, timestamp = frame index
+  poses_tum.txt              `timestamp tx ty tz qx qy qz qw`, camera-to-world; timestamp = the frame's
+                             time in the source video, seconds (its frame index when none is known)
   intrinsics.npy             float32 (T,3,3)
   pointmaps.npz              points (T,H,W,3) world, confidence (T,H,W)
   tracks_2d.npz              tracks (T,N,2), visible (T,N), moving (T,N), queries (N,3)
@@ -46,6 +47,7 @@ class Reconstruction:
     tracks_world: np.ndarray | None = None  # float32 (T,N,3)
     tracks_valid: np.ndarray | None = None  # bool (T,N)
     report: dict[str, Any] = field(default_factory=dict)
+    timestamps: np.ndarray | None = None  # float64 (T,) source time of each frame, s (None: 0,1,2..)
 
     @property
     def num_frames(self) -> int:
@@ -68,13 +70,15 @@ def _save_npz(path: Path, **arrays: np.ndarray) -> None:
 
 
 
-def tum_lines(cam_to_world: np.ndarray) -> str:
-    """TUM trajectory text for (T,4,4) camera-to-world poses: `t tx ty tz qx qy qz qw` per line."""
+def tum_lines(cam_to_world: np.ndarray, timestamps: np.ndarray | None = None) -> str:
+    """TUM trajectory text for (T,4,4) camera-to-world poses: `t tx ty tz qx qy qz qw` per line;
+    t from `timestamps` (T,) seconds, or the frame index."""
     quat = geometry.matrix_to_quat(cam_to_world[:, :3, :3])  # (T,4) w,x,y,z
+    times = np.arange(len(cam_to_world), dtype=np.float64) if timestamps is None else timestamps
     lines = []
-    for t, (pose, q) in enumerate(zip(cam_to_world, quat)):
+    for t, pose, q in zip(times, cam_to_world, quat):
         tx, ty, tz = pose[:3, 3]
-        lines.append(f"{t:.1f} {tx:.9g} {ty:.9g} {tz:.9g} {q[1]:.9g} {q[2]:.9g} {q[3]:.9g} {q[0]:.9g}")
+        lines.append(f"{t:.6f} {tx:.9g} {ty:.9g} {tz:.9g} {q[1]:.9g} {q[2]:.9g} {q[3]:.9g} {q[0]:.9g}")
     return "\n".join(lines) + "\n"
 
 
@@ -132,7 +136,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_str
         _save_npy(out / "depth" / f"{t:06d}.npy", rec.depth[t].astype(np.float32))
         _save_png(out / "depth" / f"{t:06d}.png", colorize_depth(rec.depth[t]))
         _save_png(out / "masks" / f"{t:06d}.png", (rec.masks[t] * 255).astype(np.uint8))
-    write_text(out / "poses_tum.txt", tum_lines(rec.cam_to_world.astype(np.float64)))
+    write_text(out / "poses_tum.txt", tum_lines(rec.cam_to_world.astype(np.float64), rec.timestamps))
     _save_npy(out / "intrinsics.npy", rec.intrinsics.astype(np.float32))
     _save_npz(out / "pointmaps.npz", points=rec.points.astype(np.float32),
               confidence=rec.confidence.astype(np.float32))
@@ -172,4 +176,5 @@ def read_reconstruction(out_dir: str | Path) -> Reconstruction:
         cam_to_world=read_tum(out / "poses_tum.txt").astype(np.float32),
         intrinsics=np.load(out / "intrinsics.npy"), points=points, confidence=confidence,
         tracks_2d=tracks_2d, tracks_world=tracks_world, tracks_valid=tracks_valid, report=report,
+        timestamps=np.loadtxt(out / "poses_tum.txt", ndmin=2)[:, 0],
     )

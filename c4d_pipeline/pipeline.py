@@ -86,7 +86,7 @@ def estimate_motion_masks(frames, edges, flows, tracker_result, pw, cfg) -> tupl
 
 def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estimator,
                 tracker_result, cfg, out_dir: str | Path | None = None,
-                inputs: dict | None = None) -> Reconstruction:
+                inputs: dict | None = None, timestamps: np.ndarray | None = None) -> Reconstruction:
     """Reconstruct a video with C4D and (if `out_dir`) write the output table there.
 
     frames: uint8 (T,H,W,3) at the resolution of the reconstruction (the pointmap source must
@@ -94,7 +94,8 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
     with `flow(frames, pairs) -> (P,H,W,2)` (`c4d_pipeline.flow.build_flow`); tracker_result:
     dynpt's TrackResult (tracks (T,N,2), visible, confidence, moving (T,N), queries (N,3)) or None
     (flow-only masks, no PTS); cfg: a c4d config (configs/c4d/default.yaml); inputs: free-form
-    description of the inputs for report.json.
+    description of the inputs for report.json; timestamps: float64 (T,) source time of each frame
+    in seconds, for poses_tum.txt (None: the frame index).
     Bad input: a source returning NaN/inf points gets those pixels ignored (warning); mismatched
     frame counts or sizes between frames, pointmaps, flow and tracks raise `UserError`; a video
     too short for the scene graph raises `UserError`; too few static points for a pair's
@@ -157,7 +158,7 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
         frames=frames, depth=result.depth, masks=masks, cam_to_world=result.cam_to_world,
         intrinsics=result.intrinsics, points=result.points, confidence=result.confidence,
         tracks_2d=None if tracks is None else {k: tracks[k] for k in ("tracks", "visible", "moving", "queries")},
-        tracks_world=tracks_world, tracks_valid=valid, report=report,
+        tracks_world=tracks_world, tracks_valid=valid, report=report, timestamps=timestamps,
     )
     if out_dir is not None:
         oc = cfg.outputs

@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from c4d.errors import UserError
-from dynpt.video_io import read_video
+from dynpt.video_io import read_video, video_fps
 
 PATCH = 16
 
@@ -89,12 +89,20 @@ def dust3r_resize(frames: np.ndarray, size: int = 512, square_ok: bool = False
 
 @dataclass(frozen=True)
 class VideoInput:
-    """Preprocessed frames uint8 (T,h,w,3), the source frame index of each, and the mapping."""
+    """Preprocessed frames uint8 (T,h,w,3), the source frame index of each, the mapping, and the
+    source's frame rate (None for a folder of frames)."""
 
     frames: np.ndarray
     source_indices: np.ndarray
     preprocessing: Preprocessing
     path: Path
+    fps: float | None = None
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """float64 (T,): each frame's time in the source, seconds (its source index without a
+        frame rate)."""
+        return self.source_indices / (self.fps or 1.0)
 
 
 def load_video_input(path: str | Path, size: int = 512, stride: int = 1, max_frames: int | None = None,
@@ -103,4 +111,4 @@ def load_video_input(path: str | Path, size: int = 512, stride: int = 1, max_fra
     DUSt3R preprocessing for network size `size`. Bad or unreadable input raises `UserError`."""
     raw = read_video(path, stride=stride, max_frames=max_frames)  # (T,H,W,3) uint8
     frames, plan = dust3r_resize(raw, size, square_ok)
-    return VideoInput(frames, np.arange(len(raw)) * stride, plan, Path(path))
+    return VideoInput(frames, np.arange(len(raw)) * stride, plan, Path(path), video_fps(path))

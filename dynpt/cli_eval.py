@@ -6,7 +6,9 @@ import argparse
 import re
 from pathlib import Path
 
-from c4d.config import load_config
+from omegaconf import OmegaConf
+
+from c4d.config import load_config, parse_overrides
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,26 +20,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="TAP-Vid query mode (default: first)")
     parser.add_argument("--out", default=None,
                         help="folder for eval.json and eval.md (default: next to the checkpoint)")
-    parser.add_argument("--config", default="paper-gpu",
-                        help="config whose eval: section is used (default: paper-gpu: 256 tracks "
-                             "per scene at 256x256, all scenes)")
+    parser.add_argument("--config", default=None,
+                        help="config whose eval: section is used (default: the one the checkpoint "
+                             "was trained with, else paper-gpu's: 256 tracks per scene at 256x256)")
     parser.add_argument("--device", default=None, help="cpu, cuda, cuda:1 ... (default: auto)")
     parser.add_argument("overrides", nargs="*", metavar="key=value",
                         help="eval overrides, e.g. eval.num_scenes=10")
 
 
+def eval_config(ckpt: dict, config: str | None, overrides: list[str]):
+    """The `eval:` section used: `config`'s if given, else the one saved with the checkpoint by
+    `c4d train` (its own resolution and track count), else paper-gpu's; `overrides` on top."""
+    cfg = load_config("dynpt", config or "paper-gpu", overrides=overrides).eval
+    saved = ckpt["extra"].get("train_config", {}).get("eval")
+    if config or not saved:
+        return cfg
+    return OmegaConf.merge(saved, parse_overrides(overrides).get("eval", {}))
+
+
 def run(args: argparse.Namespace) -> int:
     from dynpt.baselines import ZeroMotionBaseline
     from dynpt.evaluate import evaluate_items, load_source, write_report
-    from dynpt.inference import load_tracker
+    from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
+    from dynpt.inference import Tracker
 
-    cfg = load_config("dynpt", args.config, overrides=args.overrides).eval
-    tracker = load_tracker(args.ckpt, args.device)
+    ckpt = load_checkpoint(args.ckpt)
+    cfg = eval_config(ckpt, args.config, args.overrides)
+    tracker = Tracker(model_from_checkpoint(ckpt, args.ckpt), args.device)
     items, kind = load_source(args.data, cfg)
     result = evaluate_items(tracker, items, args.mode)
     # The reference that gives the numbers a meaning: no motion, always visible, all static.
     baseline = evaluate_items(ZeroMotionBaseline(), items, args.mode)
-    title = f"{Path(args.data).name} ({args.mode})"
+    size = "x".join(str(v) for v in cfg.resolution)
+    tracks = f", {cfg.num_tracks} tracks per video" if kind == "shards" else ""
+    title = f"{Path(args.data).name} ({args.mode} queries, videos at {size}{tracks})"
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
     out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{args.mode}"
     info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": args.mode,

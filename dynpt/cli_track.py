@@ -1,9 +1,15 @@
-"""`c4d track VIDEO --ckpt PATH --out DIR`: tracks (npz) and an overlay video coloured by mobility."""
+"""`c4d track VIDEO --ckpt PATH --out DIR`: tracks (npz) and an overlay video coloured by mobility.
+
+The video is tracked at a working size (`--size`, `--max-size`; default its own) with at most
+`--points` grid-sampled points; tracks.npz holds the tracks in the source video's pixels and the
+overlay is drawn at the working size, at the source frame rate divided by `--stride`.
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -25,12 +31,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the random query points [0]")
     parser.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame [1]")
     parser.add_argument("--max-frames", type=int, help="use at most this many frames")
+    parser.add_argument("--size", type=int, help="track at this long side in pixels (frames resized)")
+    parser.add_argument("--max-size", type=int, help="shrink frames whose long side exceeds this "
+                        "many pixels (e.g. 512 for a 720p video; never enlarges)")
+    parser.add_argument("--points", type=int, help="point budget of the default query grid: the grid "
+                        "cells widen until at most this many points are sampled")
     parser.add_argument("--max-points", type=int, help="track at most this many points jointly "
                         "(bounds memory; default all together)")
     parser.add_argument("--no-backward", action="store_true",
                         help="track only forward from each query frame")
     parser.add_argument("--device", help="torch device (default: cuda if available, else cpu)")
-    parser.add_argument("--fps", type=float, default=12.0, help="frame rate of the overlay video [12]")
+    parser.add_argument("--fps", type=float, help="frame rate of the overlay video (default: the "
+                        "source's divided by --stride; 12 for a folder of frames)")
 
 
 def _read_queries(path: str) -> np.ndarray:
@@ -43,30 +55,53 @@ def _read_queries(path: str) -> np.ndarray:
         raise UserError(f"cannot read queries from {path!r} ({exc}); write an (N,3) array of (t, x, y)") from exc
 
 
+def grid_for_budget(height: int, width: int, grid_size: int, points: int | None) -> int:
+    """The query grid cell (pixels) for a frame of `height` x `width`: `grid_size`, widened so that
+    the sampling's two points per cell stay within `points` (None: no budget)."""
+    if points is None:
+        return grid_size
+    cell = grid_size
+    while 2 * math.ceil(height / cell) * math.ceil(width / cell) > points and cell < max(height, width):
+        cell += 1
+    return cell
+
+
 def run(args: argparse.Namespace) -> int:
     from datagen.visualize import draw_tracks_enlarged
     from dynpt.inference import load_tracker
-    from dynpt.video_io import read_video, write_video
+    from dynpt.video_io import read_video, resize_long_side, video_fps, write_video
 
-    if args.grid_size < 1 or (args.max_points is not None and args.max_points < 1):
-        raise UserError("--grid-size and --max-points must be at least 1")
-    video = read_video(args.video, stride=args.stride, max_frames=args.max_frames)
+    for flag in ("grid_size", "max_points", "points", "size", "max_size"):
+        value = getattr(args, flag)
+        if value is not None and value < 1:
+            raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {value}")
+    source = read_video(args.video, stride=args.stride, max_frames=args.max_frames)
+    video = resize_long_side(source, args.size, args.max_size)
+    (T, H0, W0), (H, W) = source.shape[:3], video.shape[1:3]
+    sx, sy = W / W0, H / H0  # working pixels per source pixel
     queries = _read_queries(args.queries) if args.queries else None
+    if queries is not None and (sx, sy) != (1, 1):
+        queries = np.asarray(queries, np.float64).copy()
+        queries[:, 1] = (queries[:, 1] + 0.5) * sx - 0.5
+        queries[:, 2] = (queries[:, 2] + 0.5) * sy - 0.5
+    grid = grid_for_budget(H, W, args.grid_size, args.points)
     tracker = load_tracker(args.ckpt, args.device)
     out = Path(args.out)
-    T, H, W = video.shape[:3]
-    log.info("tracking %s points through %d frames of %dx%d on %s",
-             "grid-sampled" if queries is None else len(queries), T, W, H, tracker.device)
+    log.info("tracking %s points through %d frames of %dx%d (source %dx%d) on %s",
+             f"grid-sampled ({grid} px cells)" if queries is None else len(queries), T, W, H, W0, H0,
+             tracker.device)
     start = time.perf_counter()
-    result = tracker.track(video, queries, grid_size=args.grid_size, seed=args.seed,
+    result = tracker.track(video, queries, grid_size=grid, seed=args.seed,
                            backward=not args.no_backward, max_points=args.max_points)
     seconds = time.perf_counter() - start
     log.info("tracked %d points in %.1f s (%.2f s per frame)", result.tracks.shape[1], seconds,
              seconds / T)
-    result.save(out / "tracks.npz")
+    result.scaled(1 / sx, 1 / sy).save(out / "tracks.npz")
     overlay = draw_tracks_enlarged(video, result.tracks, result.visible, result.moving,
                                    show_occluded=False, legend=True)
-    write_video(out / "overlay.mp4", overlay, args.fps)
+    source_fps = video_fps(args.video)
+    fps = args.fps or (source_fps / args.stride if source_fps else 12.0)
+    write_video(out / "overlay.mp4", overlay, fps)
     moving = np.nanmean(result.moving[result.visible] > 0.5) if result.visible.any() else float("nan")
     log.info("wrote %s and %s (%.0f%% of visible points predicted moving)", out / "tracks.npz",
              out / "overlay.mp4", 100 * moving)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from c4d.config import add_training_arguments, load_config
+from c4d.config import add_training_arguments, training_config
 from c4d.system import configure_threads
 
 
@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dynpt.train import train
 
-    cfg = load_config("dynpt", args.config, overrides=args.overrides)
+    cfg = training_config("dynpt", args)
     configure_threads(workers=cfg.data.num_workers, threads=cfg.threads)
     train(cfg, resume=args.resume)
     return 0

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,8 +43,22 @@ class TrackResult:
                                 confidence=self.confidence, moving=self.moving, queries=self.queries)
         return path
 
+    def scaled(self, fx: float, fy: float) -> "TrackResult":
+        """The same tracks in pixels of an image `fx` x `fy` times the size (pixel centres kept)."""
+        if (fx, fy) == (1, 1):
+            return self
+        scale = np.array([fx, fy], np.float32)
+        queries = self.queries.copy()
+        queries[:, 1:] = (queries[:, 1:] + 0.5) * scale - 0.5
+        return replace(self, tracks=(self.tracks + 0.5) * scale - 0.5, queries=queries)
+
 
 def _check_video(video) -> np.ndarray | torch.Tensor:
+    """`video` as uint8 (T,H,W,3); a path (str or PathLike) is read with `dynpt.read_video`."""
+    if isinstance(video, (str, os.PathLike)):
+        from dynpt.video_io import read_video
+
+        video = read_video(video)
     if isinstance(video, torch.Tensor):
         shape, dtype_ok = tuple(video.shape), video.dtype == torch.uint8
     else:
@@ -139,7 +153,8 @@ class Tracker:
     @torch.inference_mode()
     def track(self, video, queries=None, grid_size: int = 20, seed: int = 0, backward: bool = True,
               max_points: int | None = None) -> TrackResult:
-        """Track points through `video`, uint8 (T,H,W,3) numpy or torch.
+        """Track points through `video`: uint8 (T,H,W,3) numpy or torch, or the path of a video
+        file or of a folder of frames (read at full size: `dynpt.read_video` reads a part).
 
         queries: float (N,3) as (t, x, y) in input pixels, or None for the paper's sampling on the
         first frame (per `grid_size` cell: max-gradient point + one random point, `seed`ed).

@@ -283,7 +283,7 @@ def build_model(model_cfg: Mapping, *, weights_from_state_dict: bool = False) ->
     if enc.get("require_checkpoint") and not enc.get("checkpoint"):
         raise UserError("this DynPT preset needs DUSt3R's encoder weights: add "
                         "model.encoder_3d.checkpoint=/path/to/DUSt3R_or_MASt3R_or_MonST3R.pth, "
-                        "or use the `cnn-only` preset")
+                        "or train without it: --config paper-gpu-cnn-only")
     if enc.get("checkpoint") or enc.get("random_init"):
         from dynpt.vit_encoder import Dust3rEncoder, load_dust3r_encoder
 

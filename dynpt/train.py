@@ -5,7 +5,8 @@ pass, accumulated over `total_batch / (batch_size * world_size)` micro-batches. 
 process (`c4d train ...`) or many (`torchrun ... -m dynpt.cli_train ...`, see docs/TRAINING.md).
 
 Files in `train.out_dir`: `config.yaml`, `checkpoints/step_XXXXXXXX.pt` (the last
-`keep_last`), `checkpoints/best.pt` (best validation `eval.best_metric`), `log.jsonl` (one line
+`keep_last`), `checkpoints/last.pt` (the newest of them), `checkpoints/best.pt` (best validation
+`eval.best_metric`, only with `eval.source`), `log.jsonl` (one line
 per step: losses, learning rate), `tb/` (TensorBoard). A checkpoint holds the model, optimiser,
 scheduler, step, RNG states and the data-stream position, so `--resume` continues the same run.
 """
@@ -17,6 +18,7 @@ import logging
 import math
 import os
 import random
+import shutil
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -101,6 +103,19 @@ def prune_checkpoints(out_dir: str | Path, keep_last: int) -> None:
     """Delete all but the newest `keep_last` step checkpoints (best.pt is never touched)."""
     for old in sorted(checkpoint_dir(out_dir).glob("step_*.pt"))[:-keep_last]:
         old.unlink(missing_ok=True)
+
+
+def alias_last(path: Path) -> Path:
+    """Point `checkpoints/last.pt` at the step checkpoint `path` (a hard link, a copy where links
+    are not supported), replacing the previous alias atomically; returns the alias."""
+    last, tmp = path.with_name("last.pt"), path.with_name(".last.pt.tmp")
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(path, tmp)
+    except OSError:
+        shutil.copyfile(path, tmp)
+    os.replace(tmp, last)
+    return last
 
 
 # --- the loop -----------------------------------------------------------------------------------
@@ -206,6 +221,7 @@ class Trainer:
         path = checkpoint_dir(self.out_dir) / f"step_{self.step:08d}.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         save_checkpoint(path, self.model, self.step, extra=extra)
+        alias_last(path)
         prune_checkpoints(self.out_dir, self.cfg.train.keep_last)
 
     # -- one step --

@@ -84,6 +84,32 @@ def read_video(path_or_image_folder: str | os.PathLike, stride: int = 1, max_fra
     return np.ascontiguousarray(np.stack(frames))
 
 
+def video_fps(path: str | os.PathLike) -> float | None:
+    """Frame rate recorded in a video file; None for a folder of frames or a file without one."""
+    path = Path(path)
+    if path.is_dir():
+        return None
+    capture = cv2.VideoCapture(str(path))
+    fps = capture.get(cv2.CAP_PROP_FPS) if capture.isOpened() else 0.0
+    capture.release()
+    return float(fps) if 0 < fps < 1000 else None
+
+
+def resize_long_side(video: np.ndarray, size: int | None = None, max_size: int | None = None) -> np.ndarray:
+    """`video` uint8 (T,H,W,3) resized (area / bilinear) so that its long side is `size` pixels, or
+    at most `max_size` (never enlarged); both None: unchanged. Aspect ratio kept."""
+    T, H, W = video.shape[:3]
+    target = size if size else (min(max_size, max(H, W)) if max_size else max(H, W))
+    if target < 8:
+        raise UserError(f"--size/--max-size {target} is too small; give at least 8 pixels")
+    if target == max(H, W):
+        return video
+    scale = target / max(H, W)
+    w, h = max(1, round(W * scale)), max(1, round(H * scale))
+    mode = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    return np.stack([cv2.resize(frame, (w, h), interpolation=mode) for frame in video])
+
+
 def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) -> Path:
     """Write RGB uint8 frames (T,H,W,3) to .mp4/.webm/.avi/.gif atomically."""
     try:
