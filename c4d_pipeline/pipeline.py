@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import platform
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from c4d_pipeline.alignment import initialise
 from c4d_pipeline.objectives import sample_points
 from c4d_pipeline.optimize import optimise
 from c4d_pipeline.outputs import Reconstruction, write_reconstruction
-from c4d_pipeline.pointmaps import PointmapSource, sanitize
+from c4d_pipeline.pointmaps import PairwisePointmaps, PointmapSource, sanitize
 from c4d_pipeline.scene_graph import graph_from_config
 
 log = logging.getLogger(__name__)
@@ -84,6 +85,22 @@ def estimate_motion_masks(frames, edges, flows, tracker_result, pw, cfg) -> tupl
     return masks.masks, "flow-only"
 
 
+@contextmanager
+def _pointmap_failures(pw: PairwisePointmaps):
+    """Turn a numerical failure downstream of the pointmaps (a non-finite loss, an alignment that
+    does not converge) into one `UserError` naming their statistics and what to try."""
+    try:
+        yield
+    except (FloatingPointError, torch.linalg.LinAlgError) as exc:
+        what = str(exc).splitlines()[0]
+        raise UserError(
+            f"the reconstruction diverged ({what}); the likely cause is the pointmap network's "
+            f"output: {pw.statistics()}. Try a better-trained network (more `c4d pretrain-pointmaps` "
+            "steps on scenes like this video, or DUSt3R's released weights) at the size it was "
+            "trained at"
+        ) from exc
+
+
 def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estimator,
                 tracker_result, cfg, out_dir: str | Path | None = None,
                 inputs: dict | None = None, timestamps: np.ndarray | None = None) -> Reconstruction:
@@ -129,14 +146,16 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
 
     start = time.perf_counter()
     tracks = _tracker_arrays(tracker_result, num_frames, (h, w))
-    masks, mask_method = estimate_motion_masks(frames, edges, np.nan_to_num(flows), tracker_result, pw, cfg)
+    with _pointmap_failures(pw):
+        masks, mask_method = estimate_motion_masks(frames, edges, np.nan_to_num(flows), tracker_result, pw, cfg)
     seconds["motion_masks"] = time.perf_counter() - start
 
-    result = optimise(
-        pw, num_frames, cfg, flows=flows, static_masks=~masks,
-        tracks=None if tracks is None else tracks["tracks"],
-        visible=None if tracks is None else tracks["visible"], device=cfg.device,
-    )
+    with _pointmap_failures(pw):
+        result = optimise(
+            pw, num_frames, cfg, flows=flows, static_masks=~masks,
+            tracks=None if tracks is None else tracks["tracks"],
+            visible=None if tracks is None else tracks["visible"], device=cfg.device,
+        )
     seconds.update({f"optimise_{k}": v for k, v in result.history["seconds"].items()})
 
     tracks_world = valid = None

@@ -87,6 +87,18 @@ class PairwisePointmaps:
         if (self.conf_i < 1).any() or (self.conf_j < 1).any():
             raise UserError("pairwise pointmaps: confidences must be >= 1 (DUSt3R convention)")
 
+    def statistics(self) -> str:
+        """One phrase on the outputs that make an optimisation fail: the share of points behind
+        their camera (z <= 0; a trained DUSt3R-family network gives about none), the spread of
+        depth over the pairs and the confidence range."""
+        z = self.pts_i[..., 2]
+        behind = float((z <= 0).mean())
+        median_z = np.median(z.reshape(self.num_edges, -1), axis=1)  # (E,) one scale per pair
+        conf = np.concatenate([self.conf_i.ravel(), self.conf_j.ravel()])
+        return (f"{100 * behind:.0f} % of its points lie behind the camera (z <= 0), the pairs' "
+                f"median depth spans {median_z.min():.3g} to {median_z.max():.3g}, confidence "
+                f"{conf.min():.2f} to {conf.max():.2f} (median {np.median(conf):.2f})")
+
 
 @runtime_checkable
 class PointmapSource(Protocol):

@@ -144,3 +144,33 @@ def test_video_folder_input_with_frame_limit(inputs, tmp_path):
         cv2.imwrite(str(frames_dir / f"{t:03d}.png"), frame[..., ::-1])
     loaded = load_video_input(frames_dir, size=64, max_frames=3)
     assert loaded.frames.shape == (3, 48, 64, 3) and loaded.source_indices.tolist() == [0, 1, 2]
+
+
+def test_poses_timestamps_are_source_frame_times(inputs, tmp_path):
+    folder, video, ckpt, _ = inputs
+    out = tmp_path / "out"
+    assert main(["run", str(video), *FAST, "--out", str(out), "--pointmaps", str(ckpt), "--size", "64",
+                 "--preset", "tiny", "--stride", "2"]) == 0
+    stamps = np.loadtxt(out / "poses_tum.txt", ndmin=2)[:, 0]
+    np.testing.assert_allclose(stamps, np.array([0, 2, 4, 6]) / 12, atol=1e-6)  # the video is 12 fps
+
+
+def test_a_diverging_pointmap_network_is_one_line_naming_its_outputs(inputs, tmp_path, capsys):
+    """A network whose points lie behind the camera (as a weakly trained one's often do) makes the
+    optimisation non-finite: one line that names the pointmap statistics and what to try."""
+    folder, video, _, tracker = inputs
+    net = tiny_network()
+    with torch.no_grad():
+        for head in (net.downstream_head1, net.downstream_head2):
+            head.proj.bias.view(4, 16, 16)[2] = -2.0  # z < 0 everywhere
+    ckpt = tmp_path / "behind.pth"
+    torch.save({"model": net.state_dict(), "args": argparse.Namespace(model=ARGS)}, ckpt)
+    for extra in ([], ["--tracker", str(tracker)], ["--flow", "dis:fast", "--stride", "2"]):
+        argv = ["run", str(video), *FAST, "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt),
+                "--size", "64", "--preset", "tiny", *extra]
+        assert main(argv) == 2, extra
+        err = capsys.readouterr().err
+        errors = [l for l in err.splitlines() if "c4d: error" in l]  # besides progress bars
+        assert len(errors) == 1 and "Traceback" not in err, err
+        assert "pointmap network" in errors[0] and "behind the camera" in errors[0], err
+        assert "Try a better-trained network" in errors[0]

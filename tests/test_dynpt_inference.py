@@ -1,5 +1,8 @@
 """Tracker API, query sampling, video reading/writing and `c4d track` end to end."""
 
+import math
+
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -159,3 +162,33 @@ def test_unknown_or_missing_device_is_a_user_error():
     if not torch.cuda.is_available():
         with pytest.raises(UserError, match="no CUDA"):
             Tracker(make_model(), "cuda")
+
+
+def test_track_sizes_point_budget_and_source_fps(tmp_path):
+    """`--max-size` shrinks the working frames, tracks.npz stays in source pixels, `--points`
+    widens the query grid, and the overlay keeps the source frame rate over the stride."""
+    from dynpt.cli_track import grid_for_budget
+
+    video_path = write_video(tmp_path / "clip.mp4", smooth_video(T=6, H=40, W=80), fps=10)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", make_model(seed=2), step=5)
+    out = tmp_path / "out"
+    assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(out), "--max-size", "40",
+                 "--grid-size", "5", "--points", "8", "--stride", "2"]) == 0
+    data = np.load(out / "tracks.npz")
+    assert data["tracks"].shape[0] == 3 and 0 < data["tracks"].shape[1] <= 8
+    assert data["queries"][:, 1].max() > 40  # source pixels (80 wide), not working ones
+    capture = cv2.VideoCapture(str(out / "overlay.mp4"))
+    assert capture.get(cv2.CAP_PROP_FPS) == pytest.approx(5, abs=0.1)
+    capture.release()
+    assert grid_for_budget(720, 1296, 20, None) == 20
+    cell = grid_for_budget(720, 1296, 20, 1000)
+    def count(c):
+        return 2 * math.ceil(720 / c) * math.ceil(1296 / c)
+    assert count(cell) <= 1000 < count(cell - 1)
+    assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(out), "--size", "4"]) == 2
+
+
+def test_track_accepts_a_video_path(tmp_path):
+    video_path = write_video(tmp_path / "clip.mp4", smooth_video(T=5, H=32, W=32), fps=10)
+    result = Tracker(make_model()).track(str(video_path), grid_size=16)
+    assert result.tracks.shape == (5, 8, 2)

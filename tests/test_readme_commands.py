@@ -1,0 +1,164 @@
+"""Every command line of README.md and docs/TRAINING.md runs as written, at toy sizes.
+
+The lines come from the documents' ```bash blocks (backslash continuations joined, comments
+dropped) and run in document order in an empty folder per document, as on a fresh clone. The
+documented mapping from "as written" to "at toy sizes here":
+
+- sizes: `c4d datagen` gets `--num-scenes 4 --workers 1 --resolution 32x32 --frames 12`;
+  training, evaluation and reconstruction lines get the key=value overrides of `TOY` appended
+  (later overrides win, so the line's own keys are still parsed and checked);
+- `torchrun --nproc_per_node 8` runs 2 processes (`python -m torch.distributed.run`);
+- placeholders for the user's own files (`_placeholders`): `video.mp4` is the first val scene as
+  a video, a DUSt3R checkpoint is a tiny official-layout network whose points lie in front of the
+  camera (`test_c4d_run.tiny_network`; a few steps of `c4d pretrain-pointmaps` do not give one),
+  TAP-Vid pickles are toy ones, `data.sources=[...]` is the first train set;
+- `[a|b]` optional groups are taken with their first alternative;
+- not run here: `make demo` / `make test` (tests/test_demo.py and this suite) and lines that need
+  a cluster's variables (`$NODE_RANK`).
+A line whose input a later line makes (the docs are not always in dependency order) is retried
+after the others; what still fails is reported with its one-line error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import os
+import pickle
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from c4d.cli import main
+from test_c4d_run import ARGS, tiny_network
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TOY = {
+    "train": ["train.steps=4", "train.stop_after=2", "train.ckpt_every=2", "train.log_every=1",
+              "train.total_batch=2", "train.batch_size=1", "data.num_frames=4",
+              "data.crop_size=[32,32]", "model.resolution=[32,32]", "data.num_tracks=8",
+              "data.num_workers=0", "eval.every=2", "eval.num_scenes=1", "eval.num_tracks=8",
+              "eval.resolution=[32,32]", "model.encoder_3d.layers=[0,1]"],
+    "pretrain-pointmaps": ["train.steps=4", "train.batch_size=2", "train.ckpt_every=2",
+                           "train.log_every=1"],
+    "eval": ["eval.num_scenes=1", "eval.num_tracks=8", "eval.resolution=[32,32]"],
+    "run": ["--size", "64", "graph.window=2", "optim.stage1_iters=3", "optim.stage2_iters=3"],
+}
+DATAGEN_TOY = ["--num-scenes", "4", "--workers", "1", "--resolution", "32x32", "--frames", "12"]
+DUST3R = ("DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth", "weights/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth")
+
+
+def command_lines(doc: Path) -> list[str]:
+    """The shell command lines of `doc`'s ```bash blocks."""
+    lines = []
+    for block in re.findall(r"```bash\n(.*?)```", doc.read_text(), re.S):
+        for line in re.sub(r"\\\n\s*", " ", block).splitlines():
+            line = re.sub(r"\s+#.*$", "", line).strip()
+            if line and not line.startswith("#"):
+                lines.append(line)
+    return lines
+
+
+def _toy_argv(line: str, sources: str) -> list[str] | None:
+    """argv of `line` at toy sizes (see the module docstring), or None if it is not run here;
+    `sources` replaces the `[...]` of `data.sources=[...]`."""
+    if line.startswith("make ") or "$" in line:
+        return None
+    line = re.sub(r"\[(--[^\]]*)\]", lambda m: m.group(1).split("|")[0], line)  # [--flow dis|raft:..]
+    line = line.replace("data.sources=[...]", f"data.sources=[{sources}]")
+    argv = shlex.split(line)
+    if argv[0] == "torchrun":
+        argv[argv.index("--nproc_per_node") + 1] = "2"
+        argv = [sys.executable, "-m", "torch.distributed.run", *argv[1:], *TOY["train"]]
+        return argv
+    assert argv[0] == "c4d", line
+    argv = argv[1:]
+    if argv[0] == "datagen":
+        for flag in ("--num-scenes", "--workers", "--resolution", "--frames"):
+            if flag in argv:
+                i = argv.index(flag)
+                del argv[i:i + 2]
+        return argv + DATAGEN_TOY
+    return argv + TOY.get(argv[0], [])
+
+
+def _placeholders(folder: Path) -> None:
+    """Make the files that stand for the user's own, once their sources exist."""
+    for name in DUST3R:
+        if not (folder / name).exists():
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            torch.save({"model": tiny_network().state_dict(), "args": argparse.Namespace(model=ARGS)},
+                       folder / name)
+    val = folder / "data" / "val"
+    if not (folder / "video.mp4").exists() and list(val.glob("*.tar")):
+        from datagen.shards import read_scenes
+        from dynpt.video_io import write_video
+
+        write_video(folder / "video.mp4", next(iter(read_scenes(val))).rgb, fps=10)
+    rng = np.random.default_rng(0)
+
+    def entry():
+        occluded = rng.random((5, 8)) < 0.2
+        return {"video": rng.integers(0, 255, (8, 24, 32, 3), dtype=np.uint8),
+                "points": rng.random((5, 8, 2)).astype(np.float32), "occluded": occluded}
+
+    for name in ("tapvid_davis.pkl", "tapvid/tapvid_davis.pkl"):
+        if not (folder / name).exists():
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            (folder / name).write_bytes(pickle.dumps({"bear": entry()}))
+    kinetics = folder / "tapvid" / "kinetics" / "0000_of_0010.pkl"
+    if not kinetics.exists():
+        kinetics.parent.mkdir(parents=True, exist_ok=True)
+        kinetics.write_bytes(pickle.dumps([entry()]))
+
+
+def _run(argv: list[str], folder: Path) -> tuple[int, str]:
+    """(exit code, last stderr line) of one line, run in `folder`."""
+    if argv[0] == sys.executable:  # torchrun
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+        proc = subprocess.run(argv, cwd=folder, env=env, capture_output=True, text=True, timeout=900)
+        lines = [l for l in proc.stderr.splitlines() if "error" in l.lower()] or proc.stderr.splitlines()
+        return proc.returncode, (lines[-1] if lines else "")
+    err = io.StringIO()
+    cwd = os.getcwd()
+    os.chdir(folder)
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            code = main(argv)
+    finally:
+        os.chdir(cwd)
+    lines = [l for l in err.getvalue().splitlines() if l.startswith("c4d: ")]
+    return code, (lines[-1] if lines else "")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(3600)
+@pytest.mark.parametrize("doc, sources", [("README.md", "data/movi-e"),
+                                          ("docs/TRAINING.md", "data/movi-e/train")])
+def test_documented_commands_run_as_written(doc, sources, tmp_path):
+    pending = [(line, argv) for line in command_lines(ROOT / doc)
+               if (argv := _toy_argv(line, sources)) is not None]
+    assert len(pending) >= 10, "the command extraction found too few lines"
+    failures: dict[str, str] = {}
+    while pending:
+        retry = []
+        for line, argv in pending:
+            _placeholders(tmp_path)
+            code, message = _run(argv, tmp_path)
+            if code:
+                retry.append((line, argv))
+                failures[line] = message
+            else:
+                failures.pop(line, None)
+        if len(retry) == len(pending):
+            break
+        pending = retry
+    assert not failures, "\n".join(f"{line}\n    -> {msg}" for line, msg in failures.items())

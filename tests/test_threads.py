@@ -1,0 +1,68 @@
+"""CPU threads: the count every command sets from the usable cores and the workers it starts."""
+
+import os
+
+import cv2
+import pytest
+import torch
+
+from c4d import system
+from c4d.cli import run_subcommand
+from c4d.errors import UserError
+
+
+@pytest.fixture
+def restore_threads(monkeypatch):
+    """Undo what a test sets: torch/OpenCV threads, the override, the OMP variables."""
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    for name in system._THREAD_VARIABLES:
+        monkeypatch.setenv(name, os.environ.get(name, "1"))
+    monkeypatch.setattr(system, "_USER_OMP", None)
+    yield
+    system.set_thread_override(None)
+    torch.set_num_threads(before[0])
+    cv2.setNumThreads(before[1])
+
+
+def test_cgroup_quota_caps_the_cores(tmp_path, monkeypatch):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)))
+    monkeypatch.delenv("LOCAL_WORLD_SIZE", raising=False)
+    assert system.available_cpus(tmp_path) == 16  # no cgroup files: the affinity
+    (tmp_path / "cpu.max").write_text("150000 100000\n")  # 1.5 CPUs
+    assert system.available_cpus(tmp_path) == 2
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert system.available_cpus(tmp_path) == 16
+    (tmp_path / "cpu.max").unlink()
+    (tmp_path / "cpu").mkdir()
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("300000\n")  # cgroup v1: 3 CPUs
+    (tmp_path / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    assert system.available_cpus(tmp_path) == 3
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "2")  # torchrun: two processes share them
+    assert system.available_cpus(tmp_path) == 1
+
+
+def test_workers_take_a_core_each_and_the_main_process_the_rest(restore_threads, monkeypatch):
+    monkeypatch.setattr(system, "available_cpus", lambda: 8)
+    assert system.configure_threads(workers=3) == 5
+    assert torch.get_num_threads() == 5 and os.environ["OMP_NUM_THREADS"] == "5"
+    assert system.configure_threads(workers=20) == 1  # never below one
+    system.init_worker_threads()
+    assert torch.get_num_threads() == 1 and cv2.getNumThreads() == 1
+
+
+def test_precedence_config_key_then_flag_then_omp_then_automatic(restore_threads, monkeypatch):
+    monkeypatch.setattr(system, "available_cpus", lambda: 8)
+    monkeypatch.setattr(system, "_USER_OMP", "3")
+    assert system.configure_threads() == 3
+    system.set_thread_override(2)
+    assert system.configure_threads(workers=1) == 2
+    assert system.configure_threads(threads=4) == 4
+    with pytest.raises(UserError, match="--threads"):
+        system.set_thread_override(-1)
+
+
+def test_every_subcommand_takes_threads(restore_threads, tmp_path, capsys):
+    """`--threads` reaches torch before the subcommand runs (here one that fails on its input)."""
+    with pytest.raises(UserError):
+        run_subcommand(["eval-recon", "--threads", "2", "--pred", str(tmp_path), "--gt", str(tmp_path)])
+    assert torch.get_num_threads() == 2
