@@ -14,8 +14,8 @@ import sys
 import traceback
 
 from c4d import __version__
-from c4d.errors import UserError
-from c4d.system import configure_threads, prepare_openmp, set_thread_override
+from c4d_core.errors import UserError
+from c4d_core.system import configure_threads, prepare_openmp, set_thread_override
 
 # name -> (module, one-line help), in the order of the data flow.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {

@@ -26,10 +26,10 @@ from typing import Callable
 import yaml
 
 from c4d.cli import run_subcommand
-from c4d.config import load_config, to_dict
-from c4d.errors import UserError
-from c4d.files import write_json
-from c4d.system import configure_threads
+from c4d_core.config import load_config, to_dict
+from c4d_core.errors import UserError
+from c4d_core.files import write_json
+from c4d_core.system import configure_threads
 
 log = logging.getLogger("c4d.demo")
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from c4d.config import add_training_arguments, training_config
-from c4d.system import configure_threads
+from c4d_core.config import add_training_arguments, training_config
+from c4d_core.system import configure_threads
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

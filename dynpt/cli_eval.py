@@ -8,7 +8,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from c4d.config import load_config, parse_overrides
+from c4d_core.config import load_config, parse_overrides
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

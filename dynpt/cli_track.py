@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 log = logging.getLogger("c4d.track")
 
@@ -67,7 +67,7 @@ def grid_for_budget(height: int, width: int, grid_size: int, points: int | None)
 
 
 def run(args: argparse.Namespace) -> int:
-    from datagen.visualize import draw_tracks_enlarged
+    from c4d_core.draw import draw_tracks_enlarged
     from dynpt.inference import load_tracker
     from dynpt.video_io import read_video, resize_long_side, video_fps, write_video
 

@@ -6,9 +6,9 @@ import cv2
 import pytest
 import torch
 
-from c4d import system
 from c4d.cli import run_subcommand
-from c4d.errors import UserError
+from c4d_core import system
+from c4d_core.errors import UserError
 
 
 @pytest.fixture

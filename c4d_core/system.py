@@ -9,7 +9,7 @@ import os
 import sys
 from pathlib import Path
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 EGL_HELP = (
     "install Mesa's EGL and GL drivers, e.g. on Debian/Ubuntu: "
@@ -117,11 +117,8 @@ def init_worker_threads(*_args) -> None:
 def _set_threads(count: int) -> None:
     for name in _THREAD_VARIABLES:
         os.environ[name] = str(count)
+    # Libraries already loaded are set directly (this floor module does not import them).
     if "torch" in sys.modules:
-        import torch
-
-        torch.set_num_threads(count)
+        sys.modules["torch"].set_num_threads(count)
     if "cv2" in sys.modules:
-        import cv2
-
-        cv2.setNumThreads(count)
+        sys.modules["cv2"].setNumThreads(count)
