@@ -111,7 +111,7 @@ class Demo:
         _c4d(*args)
         checkpoint = latest_checkpoint(folder)
         return {"checkpoint": str(checkpoint), "config": t.config, "steps": t.steps,
-                "log": str(folder / "log.jsonl")}
+                "overrides": list(t.overrides), "log": str(folder / "log.jsonl")}
 
     # -- 3. eval
     def eval(self, folder: Path, checkpoint: str) -> dict:
@@ -178,7 +178,8 @@ class Demo:
         _c4d("track", Path(recon_dir) / "frames", "--ckpt", checkpoint, "--out", folder / "tracks")
         return {"dataset_report": str(folder / "dataset" / "index.html"),
                 "reconstruction_report": str(folder / "reconstruction" / "index.html"),
-                "track_overlay": str(folder / "tracks")}
+                "track_overlay": str(folder / "tracks" / "overlay.mp4"),
+                "scene": f"{self.val_dirs[r.preset]} #0 (the first reconstructed scene)"}
 
 
 def _num(value) -> str:
@@ -236,8 +237,10 @@ def summary_markdown(records: dict) -> str:
                 "average_pts_within_thresh", "occlusion_accuracy")) + " |")
     lines += ["", *_tracker_verdict(records["eval"]["results"])]
     rec = records["reconstruct"]
-    lines += ["", f"Checkpoint: `{records['train']['checkpoint']}`; training log "
-              f"`{records['train']['log']}`.", "",
+    train = records["train"]
+    overrides = " ".join(train.get("overrides", [])) or "none"
+    lines += ["", f"Tracker: `{train['config']}` trained {train['steps']} steps (overrides: "
+              f"`{overrides}`); checkpoint `{train['checkpoint']}`; training log `{train['log']}`.", "",
               f"## Reconstruction of the first {len(rec['metrics'])} scenes of {rec['source']}", "",
               "Pointmaps: ground truth with noise and the static-world bias (a stand-in for a "
               "DUSt3R-family network, see docs/RESULTS.md); flow: DIS; tracker: the one trained above.", "",
@@ -256,10 +259,18 @@ def summary_markdown(records: dict) -> str:
     lines += ["", f"C4D has the lower ATE than GA only in {wins} of {len(rows['C4D'])} scenes. Both "
               "runs write the same motion masks (from the tracker and the flow, computed before the "
               "optimisation, which GA only does not use), hence the same mask IoU."]
+    ious = [c[5] for c in rows["C4D"] if c[5] is not None]
+    if ious and max(ious) < 0.2:
+        lines += ["", f"Mask IoU is {min(ious):.2f}-{max(ious):.2f}: near chance for objects "
+                  "covering a few percent of the frame (a mask of every pixel scores about their "
+                  "share), so these masks say little; read ATE and depth instead."]
     lines += ["", f"Outputs: `{Path(rec['outputs']['scene-000']['C4D']).parent.parent}/scene-NNN/{{c4d,ga-only}}`", "",
               "## Pictures", ""]
-    lines += [f"- {k.replace('_', ' ')}: `{v}`" for k, v in records["pictures"].items()
-              if k != "seconds"]
+    pictures = records["pictures"]
+    lines += [f"- {k.replace('_', ' ')}: `{v}`" for k, v in pictures.items()
+              if k not in ("seconds", "scene")]
+    if "scene" in pictures:
+        lines.append(f"- the track overlay and the reconstruction report show {pictures['scene']}")
     return "\n".join(lines) + "\n"
 
 

@@ -22,6 +22,7 @@ MOVING_COLOR = (255, 50, 40)  # RGB: points whose world position changes
 TRACK_LEGEND = {"static": STATIC_COLOR, "moving": MOVING_COLOR}
 BACKGROUND_SEGMENT_COLOR = (60, 60, 60)  # RGB of segmentation id 0 (floor, dome)
 INVALID_COLOR = (0, 0, 0)  # RGB of pixels without a valid value (depth <= 0, NaN)
+OUTLINE_COLOR = (20, 20, 20)  # RGB rim around track dots
 
 _SUBPIXEL_BITS = 4  # cv2 drawing with fractional coordinates: positions scaled by 2**4
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -198,9 +199,10 @@ def draw_tracks(
     A `Scene` stores tracks as (N,T,2): pass `scene.tracks.transpose(1, 0, 2)`,
     `~scene.occluded.T`, `scene.moving.T`.
 
-    Visible points are filled dots; occluded points are hollow rings, or left out when
-    `show_occluded` is False. `trail` > 0 draws each track's last `trail` visible steps as a
-    polyline. `radius` defaults to about 1% of the image diagonal. `legend` writes the colour key.
+    Visible points are filled dots with a dark rim; occluded points are hollow rings, or left out
+    when `show_occluded` is False. `trail` > 0 draws each track's last `trail` visible steps as a
+    polyline. `radius` defaults to about 1% of the image diagonal. `legend` adds the colour key in
+    a strip below the frames (the output is then taller than `frames`).
     """
     frames = np.asarray(frames)
     tracks = np.asarray(tracks, dtype=np.float32)
@@ -216,6 +218,7 @@ def draw_tracks(
     if radius is None:
         radius = max(1.5, 0.01 * float(np.hypot(height, width)))
     r_fixed = int(round(radius * (1 << _SUBPIXEL_BITS)))
+    outline = int(round(max(1.0, radius / 3) * (1 << _SUBPIXEL_BITS)))
     finite = np.isfinite(tracks).all(axis=-1)  # (T,N)
     fixed = _fixed(np.where(finite[..., None], tracks, 0.0))  # (T,N,2)
 
@@ -236,8 +239,12 @@ def draw_tracks(
                 continue
             center = (int(fixed[t, n, 0]), int(fixed[t, n, 1]))
             color = tuple(float(c) for c in colors[t, n])
-            thickness = -1 if visible[t, n] else 1
-            cv2.circle(canvas, center, r_fixed, color, thickness, cv2.LINE_AA, _SUBPIXEL_BITS)
+            if visible[t, n]:  # a dark rim first, so the dot shows on light and dark floors alike
+                cv2.circle(canvas, center, r_fixed + outline, OUTLINE_COLOR, -1, cv2.LINE_AA, _SUBPIXEL_BITS)
+                cv2.circle(canvas, center, r_fixed, color, -1, cv2.LINE_AA, _SUBPIXEL_BITS)
+            else:
+                cv2.circle(canvas, center, r_fixed, OUTLINE_COLOR, 3, cv2.LINE_AA, _SUBPIXEL_BITS)
+                cv2.circle(canvas, center, r_fixed, color, 1, cv2.LINE_AA, _SUBPIXEL_BITS)
     if legend and moving is not None:
         out = np.stack([draw_legend(frame, TRACK_LEGEND) for frame in out])
     return out
@@ -259,15 +266,47 @@ def draw_tracks_enlarged(
 
 
 def draw_legend(image: np.ndarray, entries: dict[str, Sequence[int]]) -> np.ndarray:
-    """Copy of an RGB image with a small colour key (name -> RGB) in the bottom-left corner."""
-    out = np.ascontiguousarray(image.copy())
-    scale = max(0.35, image.shape[0] / 500.0)
-    line = int(round(22 * scale)) + 4
-    for i, (name, color) in enumerate(entries.items()):
-        y = image.shape[0] - (len(entries) - i) * line - 2
-        cv2.rectangle(out, (4, y), (4 + line - 4, y + line - 4), tuple(int(c) for c in color), -1)
-        _put_text(out, name, (line + 4, y + line - 6), scale)
-    return out
+    """An RGB image (H,W,3) with a colour key (name -> RGB) in a strip below it, not over it:
+    (H + strip, W, 3)."""
+    return np.concatenate([image, key_strip(image.shape[1], entries)], axis=0)
+
+
+def key_strip(width: int, entries: dict[str, Sequence[int]] | None = None, depth: bool = False,
+              flow: bool = False, height: int = 26) -> np.ndarray:
+    """A dark strip (height, width, 3) of colour keys to place under a picture: the named colours
+    (a square each), a near-to-far bar of `colorize_depth`'s colours and the flow colour wheel
+    (direction = hue, speed = saturation) where asked. Keys that do not fit are left out."""
+    strip = np.full((height, width, 3), 32, np.uint8)
+    scale, x = 0.4, 6
+    baseline = height // 2 + 5
+
+    def text(label: str) -> None:
+        nonlocal x
+        cv2.putText(strip, label, (x, baseline), _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+        x += cv2.getTextSize(label, _FONT, scale, 1)[0][0] + 10
+
+    for name, color in (entries or {}).items():
+        if x + 60 > width:
+            break
+        cv2.rectangle(strip, (x, 6), (x + height - 12, height - 7), tuple(int(c) for c in color), -1)
+        x += height - 6
+        text(name)
+    if depth and x + 150 <= width:
+        text("depth: near")
+        ramp = colorize_depth(np.linspace(1.0, 4.0, 60, dtype=np.float32)[None].repeat(height - 12, 0),
+                              vmin=1.0, vmax=4.0)
+        strip[6:height - 6, x:x + 60] = ramp
+        x += 66
+        text("far")
+    if flow and x + 120 <= width:
+        size = height - 4
+        v, u = np.mgrid[:size, :size].astype(np.float32) - (size - 1) / 2
+        wheel = colorize_flow(np.stack([u, v], -1), max_magnitude=(size - 1) / 2)
+        wheel[np.hypot(u, v) > (size - 1) / 2] = strip[0, 0]
+        strip[2:2 + size, x:x + size] = wheel
+        x += size + 6
+        text("flow: hue = direction")
+    return strip
 
 
 # --------------------------------------------------------------------------------------------

@@ -145,7 +145,7 @@ def test_c4d_track_end_to_end(tmp_path, capsys):
     assert data["tracks"].shape == (6, 12, 2) and data["visible"].dtype == bool
     assert data["moving"].shape == data["confidence"].shape == (6, 12)
     overlay = read_video(out / "overlay.mp4")
-    assert overlay.shape == (6, 280, 392, 3)  # enlarged 7x to at least 256 rows, to stay legible
+    assert overlay.shape == (6, 280 + 26, 392, 3)  # enlarged 7x to at least 256 rows, + the key strip
     queries = tmp_path / "q.txt"
     np.savetxt(queries, [[2, 10, 10], [0, 30, 20]])
     assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(out), "--queries", str(queries)]) == 0

@@ -60,9 +60,10 @@ def test_report_counts_plots_and_sample_pictures(shard_dir, tmp_path):
     assert sorted(p.name for p in (out / "scenes").iterdir()) == ["train-00000000", "train-00000001"]
     sheet = np.asarray(Image.open(out / "scenes/train-00000000/sheet.png"))
     panel_h, panel_w = 4 * H, 4 * W  # 48-pixel scenes are shown 4x larger
-    assert sheet.shape == (4 * panel_h + 3 * 2, 4 * panel_w + 3 * 2, 3) and _not_blank(sheet)
+    keys = 26  # the colour-key strip under the panels (tracks, depth bar, flow wheel)
+    assert sheet.shape == (4 * panel_h + 3 * 2 + keys, 4 * panel_w + 3 * 2, 3) and _not_blank(sheet)
     video = read_video_frames(out / "scenes/train-00000000/video.webm")
-    assert video.shape == (T, panel_h, 4 * panel_w + 3 * 2, 3) and _not_blank(video[0])
+    assert video.shape == (T, panel_h + keys, 4 * panel_w + 3 * 2, 3) and _not_blank(video[0])
     page = (out / "index.html").read_text()
     assert "distributions.png" in page and "scenes/train-00000001/video.webm" in page
 
@@ -83,7 +84,7 @@ def test_scene_detail_mode(shard_dir, tmp_path):
         assert (out / name).is_file(), name
     assert "train-00000002" in (out / "index.html").read_text()
     every = np.asarray(Image.open(out / "all_frames.png"))
-    assert every.shape[0] == T * 4 * H + (T - 1) * 2
+    assert every.shape[0] == T * 4 * H + (T - 1) * 2 + 26  # + the colour keys
     assert main(["inspect", str(shard_dir), "--out", str(out), "--scene", "3"]) == 2
 
 

@@ -73,7 +73,11 @@ def _run_reconstruction(args, cfg) -> int:
         from c4d_pipeline.cli_eval_recon import pick_scene
 
         gt = pick_scene(args.gt, args.scene_index)
-    summary = recon_report.build_recon_report(args.source, args.out, cfg, gt, args.gt or "",
+    gt_name = ""
+    if gt is not None:  # the scene's own name, not the (possibly temporary) folder it was read from
+        gt_name = (f"{gt.meta.get('preset', Path(args.gt).name)} {gt.meta.get('split', '')} "
+                   f"scene {gt.meta.get('index', args.scene_index)}").replace("  ", " ")
+    summary = recon_report.build_recon_report(args.source, args.out, cfg, gt, gt_name,
                                               video_ext=args.video_format)
     for problem in summary["problems"]:
         log.warning("%s: %s", args.source, problem)

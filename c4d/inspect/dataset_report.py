@@ -266,7 +266,7 @@ def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
     moving = None if scene.moving is None else scene.moving.T  # (T,N)
     radius = max(1.5, cfg.track_radius * factor * max(scene.image_size))
     panels = [draw.draw_tracks(draw.upscale(scene.rgb, factor), tracks, ~scene.occluded.T, moving,
-                                    radius=radius, legend=moving is not None)]
+                               radius=radius)]
     labels = ["rgb + tracks"]
     for name, colorize in (("depth", draw.colorize_depth),
                            ("segmentation", draw.colorize_segmentation),
@@ -275,13 +275,25 @@ def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
         if value is not None:
             panels.append(draw.upscale(colorize(value), factor))
             labels.append(name)
+    if labels[-1] == "flow_fwd":  # frame T-1 has no next frame: grey, and said so on the frame
+        panels[-1] = panels[-1].copy()
+        panels[-1][-1] = draw.label_image(np.full_like(panels[-1][-1], 128), "no flow: last frame")
     return panels, labels
 
 
+def _keys(scene: Scene, width: int) -> np.ndarray:
+    """The colour keys under a scene's panels: track colours, depth bar, flow wheel."""
+    entries = {**draw.TRACK_LEGEND, "ring: occluded": (200, 200, 200)} if scene.moving is not None else {}
+    return draw.key_strip(width, entries, depth=scene.depth is not None,
+                          flow=scene.flow_fwd is not None)
+
+
 def scene_video(scene: Scene, cfg) -> np.ndarray:
-    """All panels side by side: RGB uint8 (T,H',W',3)."""
+    """All panels side by side over the colour keys: RGB uint8 (T,H',W',3)."""
     panels, labels = scene_panels(scene, cfg)
-    return draw.side_by_side(panels, labels)
+    video = draw.side_by_side(panels, labels)
+    keys = _keys(scene, video.shape[2])
+    return np.concatenate([video, np.broadcast_to(keys, (len(video), *keys.shape))], axis=1)
 
 
 def scene_contact_sheet(scene: Scene, cfg, num_frames: int) -> np.ndarray:
@@ -290,7 +302,8 @@ def scene_contact_sheet(scene: Scene, cfg, num_frames: int) -> np.ndarray:
     times = np.unique(np.linspace(0, scene.num_frames - 1, num_frames).round().astype(int))
     rows = [draw.side_by_side([p[t] for p in panels], [f"{labels[0]} t={t}"] + labels[1:])
             for t in times]
-    return draw.contact_sheet(rows, columns=1)
+    sheet = draw.contact_sheet(rows, columns=1)
+    return np.concatenate([sheet, _keys(scene, sheet.shape[1])], axis=0)
 
 
 # --------------------------------------------------------------------------------------------

@@ -95,9 +95,10 @@ def track_curves(path: str | os.PathLike, scene: Scene, max_tracks: int) -> Path
 
 
 def trajectory_plot(path: str | os.PathLike, positions: np.ndarray,
-                    reference: np.ndarray | None = None, title: str = "camera trajectory") -> Path:
+                    reference: np.ndarray | None = None, title: str = "camera trajectory",
+                    unit: str = "world units") -> Path:
     """Camera centres (T,3) as a top view (x, y) and a side view (x, z), optionally with a
-    ground-truth trajectory (T,3) already aligned to the same frame."""
+    ground-truth trajectory (T,3) already aligned to the same frame; axes in `unit`."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
     for ax, (i, j, name) in zip(axes, ((0, 1, "top view (x, y)"), (0, 2, "side view (x, z)"))):
         if reference is not None:
@@ -106,6 +107,8 @@ def trajectory_plot(path: str | os.PathLike, positions: np.ndarray,
         ax.plot(positions[:, i], positions[:, j], "-o", color="#cc3311", ms=2, label="estimated")
         ax.plot(positions[:1, i], positions[:1, j], "s", color="#cc3311", ms=6, label="first frame")
         ax.set_title(name, fontsize=10)
+        ax.set_xlabel(f"{'xyz'[i]} ({unit})", fontsize=9)
+        ax.set_ylabel(f"{'xyz'[j]} ({unit})", fontsize=9)
         ax.set_aspect("equal", adjustable="datalim")
         ax.legend(fontsize=8)
     fig.suptitle(title, fontsize=11)

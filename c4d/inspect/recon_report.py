@@ -359,14 +359,18 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
     pose_errors = None
     if recon.cam_to_world is not None:
         estimated, truth, title = recon.cam_to_world, None, "camera trajectory"
+        unit = "reconstruction units"
         if gt_scene is not None:
             try:
                 estimated, truth, pose_errors = ground_truth_trajectory(recon, gt_scene)
-                title += f" Sim(3)-aligned to {gt_name} (ATE {pose_errors['ate']:.3g})"
+                title = (f"camera trajectory of {gt_name}, Sim(3)-aligned to the truth "
+                         f"(ATE {pose_errors['ate']:.3g})")
+                unit = "scene units"
             except UserError as exc:
                 recon.problems.append(f"ground truth not drawn: {exc}")
         written["trajectory"] = plots.trajectory_plot(
-            out / "trajectory.png", estimated[:, :3, 3], None if truth is None else truth[:, :3, 3], title)
+            out / "trajectory.png", estimated[:, :3, 3], None if truth is None else truth[:, :3, 3], title,
+            unit)
     flythrough = flythrough_frames(recon, cfg.flythrough)
     if flythrough is not None:
         written["flythrough"] = write_video(out / f"flythrough{video_ext}", flythrough, fps)
@@ -414,6 +418,9 @@ def _write_page(out: Path, recon: Reconstruction, summary: dict, written: dict[s
             fragments.append(show(written[name], out, captions[name]))
     if recon.report:
         fragments.append(html.heading("report.json"))
-        fragments.append(html.table([[k, json.dumps(v)[:300]] for k, v in recon.report.items()],
-                                    header=["key", "value"]))
+        rows = []
+        for key, value in recon.report.items():  # one row per entry of each section
+            items = value.items() if isinstance(value, dict) else [("", value)]
+            rows += [[key, name, v] for name, v in items]
+        fragments.append(html.table(rows, header=["section", "key", "value"]))
     return html.write_page(out / "index.html", f"Reconstruction {recon.path.name}", fragments)
