@@ -18,11 +18,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shutil
 import time
 from itertools import islice
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import yaml
 
 from c4d.cli import run_subcommand
@@ -174,12 +176,38 @@ class Demo:
         r = self.cfg.recon
         _c4d("inspect", self.val_dirs[r.preset], "--out", folder / "dataset")
         _c4d("inspect", recon_dir, "--out", folder / "reconstruction",
-             "--gt", self.val_dirs[r.preset], "--scene-index", 0)
+             "--gt", self.val_dirs[r.preset], "--scene-index", 0,
+             "--compare", f"GA only={Path(recon_dir).parent / 'ga-only'}")
         _c4d("track", Path(recon_dir) / "frames", "--ckpt", checkpoint, "--out", folder / "tracks")
+        readme = readme_pictures(folder)
         return {"dataset_report": str(folder / "dataset" / "index.html"),
                 "reconstruction_report": str(folder / "reconstruction" / "index.html"),
                 "track_overlay": str(folder / "tracks" / "overlay.mp4"),
+                "readme_pictures": f"{readme}/{{dataset_sheet,tracks,trajectory,scene_ply}}.png",
                 "scene": f"{self.val_dirs[r.preset]} #0 (the first reconstructed scene)"}
+
+
+def readme_pictures(pictures: Path) -> Path:
+    """The README's four pictures, all of the first reconstructed val scene, into
+    `pictures/readme/` (`cp OUT/pictures/readme/*.png docs/images/` updates the README): its
+    contact sheet, three frames of the track overlay (first, middle, and the frame with the most
+    points predicted moving), the camera trajectory and the scene.ply rendering."""
+    from c4d_core.draw import side_by_side
+    from c4d_core.video import read_video_frames, write_image
+
+    out = pictures / "readme"
+    out.mkdir(parents=True, exist_ok=True)
+    sheet = sorted((pictures / "dataset" / "scenes").glob("*/sheet.png"))[0]  # the first val scene
+    shutil.copyfile(sheet, out / "dataset_sheet.png")
+    shutil.copyfile(pictures / "reconstruction" / "trajectory.png", out / "trajectory.png")
+    shutil.copyfile(pictures / "reconstruction" / "ply.png", out / "scene_ply.png")
+    overlay = read_video_frames(pictures / "tracks" / "overlay.mp4")
+    with np.load(pictures / "tracks" / "tracks.npz") as tracks:
+        moving = ((tracks["moving"] > 0.5) & tracks["visible"]).sum(axis=1)  # (T,)
+    frames = sorted({0, len(overlay) // 2, int(moving.argmax())})
+    write_image(out / "tracks.png", side_by_side([overlay[t] for t in frames],
+                                                 [f"frame {t}" for t in frames]))
+    return out
 
 
 def _num(value) -> str:
@@ -259,11 +287,14 @@ def summary_markdown(records: dict) -> str:
     lines += ["", f"C4D has the lower ATE than GA only in {wins} of {len(rows['C4D'])} scenes. Both "
               "runs write the same motion masks (from the tracker and the flow, computed before the "
               "optimisation, which GA only does not use), hence the same mask IoU."]
-    ious = [c[5] for c in rows["C4D"] if c[5] is not None]
-    if ious and max(ious) < 0.2:
-        lines += ["", f"Mask IoU is {min(ious):.2f}-{max(ious):.2f}: near chance for objects "
-                  "covering a few percent of the frame (a mask of every pixel scores about their "
-                  "share), so these masks say little; read ATE and depth instead."]
+    masks = [m["C4D"].get("mask", {}) for m in rec["metrics"].values()]
+    pairs = [(m["iou"], m["gt_dynamic_fraction"]) for m in masks if m.get("iou") is not None
+             and m.get("gt_dynamic_fraction") is not None]
+    if pairs and max(iou for iou, _ in pairs) < 0.2:
+        lines += ["", "Mask IoU " + ", ".join(f"{iou:.2f}" for iou, _ in pairs) + " against "
+                  + ", ".join(f"{share:.2f}" for _, share in pairs) + " for marking every pixel "
+                  "dynamic (the share of moving pixels): near chance, so these masks say little "
+                  "yet; read ATE and depth instead."]
     lines += ["", f"Outputs: `{Path(rec['outputs']['scene-000']['C4D']).parent.parent}/scene-NNN/{{c4d,ga-only}}`", "",
               "## Pictures", ""]
     pictures = records["pictures"]

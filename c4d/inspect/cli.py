@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="reconstructions: shard set holding the ground truth of the video")
     parser.add_argument("--scene-index", type=int, default=0, metavar="I",
                         help="reconstructions: which scene of --gt (0-based, reading order)")
+    parser.add_argument("--compare", action="append", default=[], metavar="LABEL=DIR",
+                        help="reconstructions: another reconstruction of the same video to draw "
+                             "and score beside it, e.g. \"GA only=recon-ga/\" (repeatable)")
     parser.add_argument("--video-format", choices=VIDEO_FORMATS, default=".webm",
                         help="container of the videos (.webm plays in browsers; default)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -77,8 +80,14 @@ def _run_reconstruction(args, cfg) -> int:
     if gt is not None:  # the scene's own name, not the (possibly temporary) folder it was read from
         gt_name = (f"{gt.meta.get('preset', Path(args.gt).name)} {gt.meta.get('split', '')} "
                    f"scene {gt.meta.get('index', args.scene_index)}").replace("  ", " ")
+    compare = {}
+    for item in args.compare:
+        label, sep, folder = item.partition("=")
+        if not sep or not label or not recon_report.is_reconstruction(folder):
+            raise UserError(f"--compare {item!r}: give LABEL=DIR with DIR a reconstruction of `c4d run`")
+        compare[label] = Path(folder)
     summary = recon_report.build_recon_report(args.source, args.out, cfg, gt, gt_name,
-                                              video_ext=args.video_format)
+                                              video_ext=args.video_format, compare=compare)
     for problem in summary["problems"]:
         log.warning("%s: %s", args.source, problem)
     log.info("report written to %s", args.out / "index.html")

@@ -13,7 +13,6 @@ Three jobs, each streaming scene by scene (memory stays at one scene):
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -277,7 +276,10 @@ def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
             labels.append(name)
     if labels[-1] == "flow_fwd":  # frame T-1 has no next frame: grey, and said so on the frame
         panels[-1] = panels[-1].copy()
-        panels[-1][-1] = draw.label_image(np.full_like(panels[-1][-1], 128), "no flow: last frame")
+        last = np.full_like(panels[-1][-1], 128)
+        middle = last.shape[0] // 2 - 12  # below the panel's own label
+        last[middle:] = draw.label_image(last[middle:], "no flow: last frame")
+        panels[-1][-1] = last
     return panels, labels
 
 
@@ -381,7 +383,7 @@ def _write_dataset_page(out: Path, summary: dict, plot_path: Path, samples: list
     counts = summary["counts"]
     fragments = [
         html.text(f"Source: {summary['source']}"),
-        html.table([[k, v] for k, v in counts.items()] + [["presets", json.dumps(summary["presets"])]],
+        html.table([[k, v] for k, v in counts.items()] + [["presets", summary["presets"]]],
                    header=["count", "value"]),
     ]
     if unreadable:
@@ -443,10 +445,10 @@ def build_scene_report(source, out: str | Path, index: int, cfg, split: str | No
         html.table([[STATISTICS[n][0], *(s.get(k, "") for k in ("count", "mean", "min", "max"))]
                     for n, s in stats.items()], header=["statistic", "count", "mean", "min", "max"]),
         html.heading("Objects"),
-        html.table([[k + 1, json.dumps(o)] for k, o in enumerate(scene.objects)],
+        html.table([[k + 1, o] for k, o in enumerate(scene.objects)],
                    header=["segment id", "object"]),
         html.heading("Meta"),
-        html.table([[k, json.dumps(v)] for k, v in scene.meta.items()], header=["key", "value"]),
+        html.table([[k, v] for k, v in scene.meta.items()], header=["key", "value"]),
         html.heading("Every frame"), html.image(all_frames, out),
     ]
     return html.write_page(out / "index.html", f"Scene {sample.key}", fragments)

@@ -41,12 +41,19 @@ def histogram_grid(path: str | os.PathLike, series: dict[str, tuple[np.ndarray, 
         if values.size == 0:
             ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes)
             continue
+        if np.ptp(values) == 0:  # one value: a histogram of it would be a single wide bar
+            shown = f"{values[0]:.4g}" + ("" if unit == "count" else f" {unit}")
+            ax.text(0.5, 0.5, f"all {values.size} values\n= {shown}", ha="center",
+                    va="center", transform=ax.transAxes, fontsize=11)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            continue
         whole = np.allclose(values, np.round(values)) and np.ptp(values) < 60
         integer = unit in ("count", "frames") and whole  # one bar per value
         bins = np.arange(values.min() - 0.5, values.max() + 1.5) if integer else 20
         ax.hist(values, bins=bins, color="#4477aa", edgecolor="white")
-        ax.axvline(values.mean(), color="#cc3311", linewidth=1, label=f"mean {values.mean():.3g}")
-        ax.legend(fontsize=8)
+        ax.axvline(values.mean(), color="#cc3311", linewidth=1)  # the mean, named in the title
+        ax.set_title(f"{title} (red: mean {values.mean():.3g})", fontsize=10)
         ax.set_ylabel("count", fontsize=9)
         ax.ticklabel_format(axis="x", useOffset=False)
     for ax in list(axes.flat)[len(series):]:
@@ -96,21 +103,25 @@ def track_curves(path: str | os.PathLike, scene: Scene, max_tracks: int) -> Path
 
 def trajectory_plot(path: str | os.PathLike, positions: np.ndarray,
                     reference: np.ndarray | None = None, title: str = "camera trajectory",
-                    unit: str = "world units") -> Path:
+                    unit: str = "world units", others: dict[str, np.ndarray] | None = None) -> Path:
     """Camera centres (T,3) as a top view (x, y) and a side view (x, z), optionally with a
-    ground-truth trajectory (T,3) already aligned to the same frame; axes in `unit`."""
+    ground-truth trajectory (T,3) and `others` (label -> (T,3), e.g. GA only) already aligned to
+    the same frame; axes in `unit`."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
     for ax, (i, j, name) in zip(axes, ((0, 1, "top view (x, y)"), (0, 2, "side view (x, z)"))):
         if reference is not None:
             ax.plot(reference[:, i], reference[:, j], "-", color="#999999", lw=5, alpha=0.6,
                     label="ground truth")  # wide, so it shows under a perfect estimate
+        for (label, other), color in zip((others or {}).items(), ("#0077bb", "#009988", "#ee7733")):
+            ax.plot(other[:, i], other[:, j], "--", color=color, lw=1.2, label=label)
         ax.plot(positions[:, i], positions[:, j], "-o", color="#cc3311", ms=2, label="estimated")
         ax.plot(positions[:1, i], positions[:1, j], "s", color="#cc3311", ms=6, label="first frame")
         ax.set_title(name, fontsize=10)
         ax.set_xlabel(f"{'xyz'[i]} ({unit})", fontsize=9)
         ax.set_ylabel(f"{'xyz'[j]} ({unit})", fontsize=9)
         ax.set_aspect("equal", adjustable="datalim")
-        ax.legend(fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=9, frameon=False)
     fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))  # the legend below the axes, never over a line
     return _save(fig, path)

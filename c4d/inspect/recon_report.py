@@ -226,8 +226,7 @@ def overview_video(recon: Reconstruction, cfg) -> np.ndarray | None:
     if tracks is not None and {"tracks", "visible"} <= set(tracks) and len(tracks["tracks"]) == len(frames):
         scaled = (tracks["tracks"] + 0.5) * factor - 0.5  # (T,N,2) on the upscaled grid
         panels[0] = draw.draw_tracks(frames, scaled, tracks["visible"], tracks.get("moving"),
-                                          radius=max(1.5, cfg.track_radius * max(frames.shape[1:3])),
-                                          legend=True)
+                                     radius=max(1.5, cfg.track_radius * max(frames.shape[1:3])))
         labels[0] = "frames + tracks"
     if recon.depth is not None and recon.depth.shape[:3] == recon.frames.shape[:3]:
         panels.append(draw.upscale(draw.colorize_depth(recon.depth), factor))
@@ -236,7 +235,11 @@ def overview_video(recon: Reconstruction, cfg) -> np.ndarray | None:
         mask_rgb = draw.colorize_mask(recon.masks)
         panels.append(draw.upscale(draw.blend(recon.frames, mask_rgb, 0.6), factor))
         labels.append("motion mask")
-    return draw.side_by_side(panels, labels)
+    video = draw.side_by_side(panels, labels)
+    keys = draw.key_strip(video.shape[2], {**draw.TRACK_LEGEND, "red area: dynamic mask": draw.MOVING_COLOR}
+                          if tracks is not None else {"red area: dynamic mask": draw.MOVING_COLOR},
+                          depth="depth" in labels)
+    return np.concatenate([video, np.broadcast_to(keys, (len(video), *keys.shape))], axis=1)
 
 
 def _subsample(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
@@ -334,12 +337,14 @@ def ground_truth_trajectory(recon: Reconstruction, scene) -> tuple[np.ndarray, n
 
 
 def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt_name: str = "",
-                       video_ext: str = ".webm") -> dict:
+                       video_ext: str = ".webm", compare: dict[str, Path] | None = None) -> dict:
     """Write the pictures, videos, `summary.json` and `index.html` of a reconstruction into `out`.
 
     `cfg`: the inspect config (`configs/inspect/default.yaml`).
     `gt_scene`: an optional `datagen.Scene` with the ground truth of the same video; its camera
-    trajectory is drawn with the estimate aligned onto it. Returns the summary.
+    trajectory is drawn with the estimate aligned onto it. `compare`: other reconstructions of
+    the same video by label (e.g. {"GA only": path}), drawn beside it in the trajectory plot and
+    scored in the summary. Returns the summary.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -350,13 +355,15 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
     if overview is not None:
         written["overview"] = write_video(out / f"overview{video_ext}", overview, fps)
     if recon.depth is not None:
-        written["depth"] = write_video(out / f"depth{video_ext}",
-                                                 draw.colorize_depth(recon.depth), fps)
+        depth = draw.colorize_depth(recon.depth)
+        keys = draw.key_strip(depth.shape[2], depth=True)
+        written["depth"] = write_video(out / f"depth{video_ext}", np.concatenate(
+            [depth, np.broadcast_to(keys, (len(depth), *keys.shape))], axis=1), fps)
     if recon.masks is not None:
         written["masks"] = write_video(out / f"masks{video_ext}",
                                                  draw.colorize_mask(recon.masks), fps)
 
-    pose_errors = None
+    pose_errors, other_errors = None, {}
     if recon.cam_to_world is not None:
         estimated, truth, title = recon.cam_to_world, None, "camera trajectory"
         unit = "reconstruction units"
@@ -368,9 +375,21 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
                 unit = "scene units"
             except UserError as exc:
                 recon.problems.append(f"ground truth not drawn: {exc}")
+        others, other_errors = {}, {}
+        for label, other_path in (compare or {}).items():
+            other = load_reconstruction(other_path)
+            if other.cam_to_world is None:
+                continue
+            if truth is not None:
+                aligned, _, other_errors[label] = ground_truth_trajectory(other, gt_scene)
+                others[label] = aligned[:, :3, 3]
+            elif truth is None and gt_scene is None:
+                others[label] = other.cam_to_world[:, :3, 3]
+        if other_errors:
+            title += "; " + ", ".join(f"{k} ATE {v['ate']:.3g}" for k, v in other_errors.items())
         written["trajectory"] = plots.trajectory_plot(
             out / "trajectory.png", estimated[:, :3, 3], None if truth is None else truth[:, :3, 3], title,
-            unit)
+            unit, others)
     flythrough = flythrough_frames(recon, cfg.flythrough)
     if flythrough is not None:
         written["flythrough"] = write_video(out / f"flythrough{video_ext}", flythrough, fps)
@@ -387,15 +406,17 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
         "dynamic_pixel_fraction": None if recon.masks is None else float(recon.masks.mean()),
         "ply_points": None if recon.ply_points is None else int(len(recon.ply_points)),
         "pose_errors": pose_errors,
+        **({"pose_errors_compared": other_errors} if other_errors else {}),
         "problems": recon.problems,
         "files": {k: str(v) for k, v in written.items()},
     }
     write_json(out / "summary.json", summary)
-    _write_page(out, recon, summary, written)
+    _write_page(out, recon, summary, written, gt_name)
     return summary
 
 
-def _write_page(out: Path, recon: Reconstruction, summary: dict, written: dict[str, Path]) -> Path:
+def _write_page(out: Path, recon: Reconstruction, summary: dict, written: dict[str, Path],
+                scene_name: str = "") -> Path:
     fragments = [html.text(f"Reconstruction: {recon.path}")]
     fragments.append(html.text("consistent: no problem found" if not recon.problems
                                else "problems: " + "; ".join(recon.problems),
@@ -406,7 +427,8 @@ def _write_page(out: Path, recon: Reconstruction, summary: dict, written: dict[s
         "overview": "Frames with tracks (blue static, red moving; hollow = occluded), depth, motion mask.",
         "flythrough": "4D point cloud: static background plus the moving points of the current "
                       "frame, from an orbiting virtual camera; dark dots are the estimated cameras.",
-        "trajectory": "Estimated camera centres (red) and ground truth (grey) when given.",
+        "trajectory": "Estimated camera centres (red), other methods when compared, and ground truth "
+                      "(grey) when given, all Sim(3)-aligned to the truth.",
         "ply": "scene.ply read back with trimesh, seen from behind the first camera.",
         "depth": "Depth (near red, far blue).",
         "masks": "Motion masks (red = dynamic).",
@@ -423,4 +445,5 @@ def _write_page(out: Path, recon: Reconstruction, summary: dict, written: dict[s
             items = value.items() if isinstance(value, dict) else [("", value)]
             rows += [[key, name, v] for name, v in items]
         fragments.append(html.table(rows, header=["section", "key", "value"]))
-    return html.write_page(out / "index.html", f"Reconstruction {recon.path.name}", fragments)
+    title = f"Reconstruction of {scene_name} ({recon.path.name})" if scene_name else f"Reconstruction {recon.path.name}"
+    return html.write_page(out / "index.html", title, fragments)
