@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -102,10 +103,12 @@ def test_report_writes_videos_plots_and_a_page(tmp_path, recon_dir, box_scene):
         writer.write(shards.encode_scene(box_scene, shards.scene_key("test", 0)))
     out = tmp_path / "report"
     assert main(["inspect", str(recon_dir), "flythrough.min_views=20", "flythrough.views_per_frame=1",
-                 "--out", str(out), "--gt", str(gt_dir), "--no-progress"]) == 0
+                 "--out", str(out), "--gt", str(gt_dir), "--no-progress",
+                 "--compare", f"GA only={recon_dir}"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["problems"] == []
     assert summary["pose_errors"]["ate"] < 1e-3, "ground truth poses align onto themselves"
+    assert summary["pose_errors_compared"]["GA only"]["ate"] < 1e-3  # the same folder, compared
     for name in ("overview.webm", "depth.webm", "masks.webm", "flythrough.webm", "trajectory.png",
                  "flythrough.png", "ply.png", "index.html"):
         assert (out / name).is_file(), name
@@ -120,3 +123,6 @@ def test_report_writes_videos_plots_and_a_page(tmp_path, recon_dir, box_scene):
     assert ply.shape == (384, 384, 3) and _not_blank(ply)
     page = (out / "index.html").read_text()
     assert "flythrough.webm" in page and "trajectory.png" in page
+    assert "Reconstruction of " in page and "scene 0" in page  # the title names the scene, not a path
+    cells = re.findall(r"<td>(.*?)</td>", page)
+    assert cells and not any("{" in c or "&#x27;" in c for c in cells), "formatted, not dict reprs"
