@@ -137,3 +137,15 @@ def test_track_kinds_from_the_scene_objects():
     assert [TRACK_KINDS[k] for k in kinds] == ["background", "resting object", "tossed object",
                                                "background", "tossed object"]
     assert track_kinds(SimpleNamespace(track_object=scene.track_object, objects=None)) is None
+
+
+def test_eval_uses_the_checkpoints_own_eval_settings():
+    """`c4d eval` without --config evaluates as the checkpoint was validated during training."""
+    from dynpt.cli_eval import eval_config
+
+    saved = {"extra": {"train_config": {"eval": {"resolution": [48, 48], "num_tracks": 64,
+                                                 "num_scenes": 8, "seed": 0}}}}
+    cfg = eval_config(saved, None, ["eval.num_scenes=2"])
+    assert list(cfg.resolution) == [48, 48] and cfg.num_tracks == 64 and cfg.num_scenes == 2
+    assert list(eval_config(saved, "paper-gpu", []).resolution) == [256, 256]
+    assert list(eval_config({"extra": {}}, None, []).resolution) == [256, 256]  # nothing saved

@@ -83,3 +83,16 @@ def test_tiny_model_learns_on_generated_shards(tmp_path):
                  "eval.resolution=[64,64]", "eval.num_tracks=64"]) == 0
     balanced, summary = _balanced_d_acc(out)
     assert balanced > 0.6, summary  # an untrained model scores 0.5 (all static)
+
+
+def test_last_alias_follows_the_newest_step_checkpoint(tmp_path):
+    from dynpt.train import alias_last
+
+    first, second = tmp_path / "step_00000002.pt", tmp_path / "step_00000004.pt"
+    first.write_bytes(b"two")
+    alias_last(first)
+    second.write_bytes(b"four")
+    last = alias_last(second)
+    first.unlink()  # pruned: the alias is a link of its own, not a pointer to a name
+    assert last == tmp_path / "last.pt" and last.read_bytes() == b"four"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt", "step_00000004.pt"]

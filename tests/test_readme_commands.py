@@ -1,8 +1,9 @@
 """Every command line of README.md and docs/TRAINING.md runs as written, at toy sizes.
 
 The lines come from the documents' ```bash blocks (backslash continuations joined, comments
-dropped) and run in document order in an empty folder per document, as on a fresh clone. The
-documented mapping from "as written" to "at toy sizes here":
+dropped) and run in document order in an empty folder per document holding only a link to the
+repository's `configs/` (so `--config configs/dynpt/tiny-cpu.yaml` resolves as in a clone's
+root). The documented mapping from "as written" to "at toy sizes here":
 
 - sizes: `c4d datagen` gets `--num-scenes 4 --workers 1 --resolution 32x32 --frames 12`;
   training, evaluation and reconstruction lines get the key=value overrides of `TOY` appended
@@ -147,6 +148,7 @@ def test_documented_commands_run_as_written(doc, sources, tmp_path):
     pending = [(line, argv) for line in command_lines(ROOT / doc)
                if (argv := _toy_argv(line, sources)) is not None]
     assert len(pending) >= 10, "the command extraction found too few lines"
+    (tmp_path / "configs").symlink_to(ROOT / "configs")
     failures: dict[str, str] = {}
     while pending:
         retry = []
