@@ -79,7 +79,7 @@ def _run_reconstruction(args, cfg) -> int:
     gt_name = ""
     if gt is not None:  # the scene's own name, not the (possibly temporary) folder it was read from
         gt_name = (f"{gt.meta.get('preset', Path(args.gt).name)} {gt.meta.get('split', '')} "
-                   f"scene {gt.meta.get('index', args.scene_index)}").replace("  ", " ")
+                   f"scene {gt.meta.get('scene_index', args.scene_index)}").replace("  ", " ")
     compare = {}
     for item in args.compare:
         label, sep, folder = item.partition("=")
