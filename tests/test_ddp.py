@@ -4,8 +4,9 @@ Every run sets DYNPT_DEBUG_DUMP, so each rank appends, per optimiser step, a SHA
 weights and the scene keys it read (dynpt.train.Trainer._debug_dump). Three launches:
 - "nodes": `--nnodes 2`, one process per node, two torchrun launches with a c10d rendezvous on
   127.0.0.1 (a free port): 6 steps without interruption, the reference;
-- "split": `--nproc_per_node 2` on one node, 3 steps (`train.stop_after=3`), then `--resume`
-  under torchrun for the last 3. The same world size, seed and data give the same run as "nodes".
+- "split": 2 processes on one node, 3 steps (`train.stop_after=3`) through
+  `c4d train --nproc-per-node 2`, then `--resume` under `torchrun --nproc_per_node 2` for the last
+  3. The same world size, seed and data give the same run as "nodes", bit for bit.
 """
 
 import json
@@ -31,13 +32,19 @@ def _overrides(shards, out_dir) -> list[str]:
             "train.log_every=1", "eval.every=0"]
 
 
+TORCHRUN = [sys.executable, "-m", "torch.distributed.run"]
+
+
+def _start(command: list[str], dump: Path | None = None) -> subprocess.Popen:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    if dump is not None:
+        env["DYNPT_DEBUG_DUMP"] = str(dump)
+    return subprocess.Popen(command, env=env, cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
 def _torchrun(launcher: list[str], args: list[str], dump: Path) -> subprocess.Popen:
-    env = {**os.environ, "DYNPT_DEBUG_DUMP": str(dump), "OMP_NUM_THREADS": "1",
-           "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-m", "torch.distributed.run", *launcher,
-                             "-m", "dynpt.cli_train", "--config", "tiny-cpu", *args],
-                            env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+    return _start([*TORCHRUN, *launcher, "-m", "dynpt.cli_train", "--config", "tiny-cpu", *args], dump)
 
 
 def _wait(*processes: subprocess.Popen) -> None:
@@ -67,10 +74,11 @@ def runs(tmp_path_factory):
                         "--rdzv_id", "test-ddp"], _overrides(shards, tmp / "nodes"),
                        tmp / "dump-nodes") for k in (0, 1)]
     _wait(*nodes)
-    local = ["--standalone", "--nproc_per_node", "2"]
-    split = _overrides(shards, tmp / "split")
-    _wait(_torchrun(local, [*split, "train.stop_after=3"], tmp / "dump-split"))
-    _wait(_torchrun(local, ["--resume", *split], tmp / "dump-split"))
+    split = _overrides(shards, tmp / "split")  # the first half through `c4d train`'s launcher
+    _wait(_start([sys.executable, "-m", "c4d", "train", "--nproc-per-node", "2", "--config",
+                  "tiny-cpu", *split, "train.stop_after=3"], tmp / "dump-split"))
+    _wait(_torchrun(["--standalone", "--nproc_per_node", "2"], ["--resume", *split],
+                    tmp / "dump-split"))
     return tmp
 
 
@@ -109,3 +117,19 @@ def test_only_rank_0_writes_checkpoints_and_logs(runs, name):
     assert len(events) == (1 if name == "nodes" else 2)  # one writer per launch (split: 2 launches)
     ckpt = torch.load(out / "checkpoints" / "step_00000006.pt", weights_only=False)
     assert len(ckpt["extra"]["rng"]) == 2 and len(ckpt["extra"]["data"]) == 2  # both ranks' state
+
+
+def test_a_schedule_mistake_is_one_line(tmp_path):
+    """total_batch not divisible by batch_size x processes: `c4d train --nproc-per-node` says so
+    before starting any process; under torchrun only rank 0 says it (torchrun adds its report)."""
+    args = ["--config", "tiny-cpu", f"data.sources=[{synthetic_shards(NUM_SCENES, 1)}]",
+            f"train.out_dir={tmp_path / 'run'}"]
+    ours = _start([sys.executable, "-m", "c4d", "train", "--nproc-per-node", "2", *args])
+    theirs = _start([*TORCHRUN, "--standalone", "--nproc_per_node", "2", "-m", "dynpt.cli_train", *args])
+    message = ("c4d: error: train.total_batch=4 is not a multiple of train.batch_size=4 x 2 "
+               "processes; choose total_batch as a multiple of 8")
+    out, _ = ours.communicate(timeout=120)
+    assert ours.returncode == 2 and out.strip() == message
+    out, _ = theirs.communicate(timeout=120)
+    assert theirs.returncode != 0 and out.count("c4d: error:") == 1 and message in out
+    assert not (tmp_path / "run").exists()
