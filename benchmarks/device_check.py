@@ -64,6 +64,7 @@ class Sizes:
         self.train_seconds = train_seconds or (8.0 if cpu else 300.0)
         self.dust3r_hw = (48, 64) if cpu else (384, 512)
         self.c4d_hw, self.c4d_iters = ((24, 32), 3) if cpu else ((288, 512), 6)
+        self.c4d_workers = 1 if cpu else (os.cpu_count() or 1)  # processes making C4D's inputs
 
 
 # --- 1. shards ----------------------------------------------------------------------------------
@@ -205,8 +206,9 @@ def dust3r_forward(out: Path, sizes: Sizes) -> None:
     name = "ViT-L 512 DPT" if not sizes.cpu else "tiny DPT"
     frames = np.random.default_rng(0).integers(0, 256, (9, h, w, 3), dtype=np.uint8)
     edges = np.stack([np.arange(8), np.arange(1, 9)], axis=1)
+    source = Dust3rPointmaps.from_checkpoint(path)
     for batch in (1, 0):
-        source = Dust3rPointmaps.from_checkpoint(path, batch_size=batch)
+        source.batch_size = batch
         source.pointmaps(frames, edges[:1])  # warm-up
         _sync(source.device)
         reset_peak_memory(source.device)
@@ -217,41 +219,74 @@ def dust3r_forward(out: Path, sizes: Sizes) -> None:
         chosen = batch or source._auto_batch(h, w)
         dtype = str(source.amp_dtype).replace("torch.", "") if source.amp_dtype else "fp32"
         row("DUSt3R pair forward", f"{name} ({path.name}, official layout), {w}x{h}, batch {chosen}"
-            f"{'' if batch else ' (automatic: from free GPU memory)'}, {dtype}", f"{seconds * 1e3:.0f} ms/pair",
+            f"{'' if batch else ' (automatic' + (': from free memory)' if source.device.type == 'cuda' else ')')}"
+            f", {dtype}", f"{seconds * 1e3:.0f} ms/pair",
             gib(peak_memory(source.device)))
-        del source
 
 
 # --- 5. C4D stage 1 -----------------------------------------------------------------------------
 
+_SCENE = None  # the box scene of a C4D input worker (built once per worker, deterministic)
+
+
+def _c4d_worker_init(frames: int, height: int, width: int) -> None:
+    global _SCENE
+    from c4d_pipeline.synthetic import make_box_scene
+
+    _SCENE = make_box_scene(frames, height, width, num_tracks=256, seed=0)
+
+
+def _c4d_inputs(edges):
+    """Ground-truth pointmaps (pts_i, pts_j, conf_i, conf_j) and flow of `edges` (E,2) of the
+    worker's scene: float32 (E,H,W,3) x 2, (E,H,W) x 2, (E,H,W,2)."""
+    from c4d_pipeline.flow import build_flow
+    from c4d_pipeline.pointmaps import GroundTruthPointmaps
+
+    pw = GroundTruthPointmaps(_SCENE, static_bias=False).pointmaps(_SCENE.rgb, edges)
+    flow = build_flow("gt", scene=_SCENE).flow(_SCENE.rgb, [tuple(map(int, e)) for e in edges])
+    return pw.pts_i, pw.pts_j, pw.conf_i, pw.conf_j, flow
+
 
 def c4d_stage1(sizes: Sizes) -> None:
+    """Inputs from `sizes.c4d_workers` spawned processes (the ground truth of 850 edges at
+    512x288 is minutes of one core; --cpu: this process), then `optimise` on the GPU."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
     import numpy as np
     import torch
 
     from c4d.config import load_config
-    from c4d_pipeline.flow import build_flow
     from c4d_pipeline.optimize import optimise
-    from c4d_pipeline.pointmaps import GroundTruthPointmaps
+    from c4d_pipeline.pointmaps import PairwisePointmaps
     from c4d_pipeline.scene_graph import graph_from_config
-    from c4d_pipeline.synthetic import make_box_scene
     from dynpt.device import peak_memory, reset_peak_memory
 
-    device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     h, w = sizes.c4d_hw
     for frames in (24, 90):
-        scene = make_box_scene(frames, h, w, num_tracks=256, seed=0)
         cfg = load_config("c4d", "default", overrides=[f"optim.stage1_iters={sizes.c4d_iters}",
                                                        "optim.stage2_iters=0", "weights.pts=0"])
         edges = graph_from_config(frames, cfg.graph)
-        pw = GroundTruthPointmaps(scene, static_bias=False).pointmaps(scene.rgb, edges)
-        flows = build_flow("gt", scene=scene).flow(scene.rgb, [tuple(map(int, e)) for e in edges])
-        reset_peak_memory(torch.device(device))
-        result = optimise(pw, frames, cfg, flows=flows, device=device)
+        start = time.perf_counter()
+        if sizes.c4d_workers == 1:
+            _c4d_worker_init(frames, h, w)
+            parts = [_c4d_inputs(edges)]
+        else:
+            with ProcessPoolExecutor(sizes.c4d_workers, mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=_c4d_worker_init, initargs=(frames, h, w)) as pool:
+                parts = list(pool.map(_c4d_inputs, np.array_split(edges, sizes.c4d_workers)))
+        pts_i, pts_j, conf_i, conf_j, flows = (np.concatenate(a) for a in zip(*parts))
+        pw = PairwisePointmaps(edges=edges, pts_i=pts_i, pts_j=pts_j, conf_i=conf_i, conf_j=conf_j)
+        inputs_s = time.perf_counter() - start
+        reset_peak_memory(device)
+        result = optimise(pw, frames, cfg, flows=flows, device=str(device))
         per_iter = float(np.median(result.history["losses"]["stage1"]["seconds"]))
-        row("C4D stage 1 (GA+CMA+CTS)", f"{frames} frames, {w}x{h}, {len(edges)} edges, {device}, "
-            f"median of {sizes.c4d_iters} iterations", f"{per_iter * 1e3:.0f} ms/iter "
-            f"({300 * per_iter:.0f} s for 300, extrapolated)", gib(peak_memory(torch.device(device))))
+        row("C4D stage 1 (GA+CMA+CTS)", f"{frames} frames, {w}x{h}, {len(edges)} edges, {device.type}, "
+            f"median of {sizes.c4d_iters} iterations (inputs {inputs_s:.0f} s)",
+            f"{per_iter * 1e3:.0f} ms/iter ({300 * per_iter:.0f} s for 300, extrapolated)",
+            gib(peak_memory(device)))
+        del pw, flows, result, parts
 
 
 # --- main ---------------------------------------------------------------------------------------
