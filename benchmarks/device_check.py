@@ -94,7 +94,7 @@ def make_shards(out: Path, sizes: Sizes) -> tuple[Path, Path]:
 
 
 def _trainer(preset: str, overrides: list[str], train_dir: Path, out: Path, val_dir: Path | None = None):
-    from c4d.config import load_config
+    from c4d_core.config import load_config
     from dynpt.train import Trainer
 
     extra = [f"eval.source={val_dir}"] if val_dir else ["eval.every=0"]
@@ -256,7 +256,7 @@ def c4d_stage1(sizes: Sizes) -> None:
     import numpy as np
     import torch
 
-    from c4d.config import load_config
+    from c4d_core.config import load_config
     from c4d_pipeline.optimize import optimise
     from c4d_pipeline.pointmaps import PairwisePointmaps
     from c4d_pipeline.scene_graph import graph_from_config

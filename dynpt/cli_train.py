@@ -12,8 +12,8 @@ import logging
 import os
 import sys
 
-from c4d.config import add_training_arguments, load_config
-from c4d.errors import UserError
+from c4d_core.config import add_training_arguments, load_config
+from c4d_core.errors import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

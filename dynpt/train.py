@@ -28,8 +28,8 @@ import torch.distributed as dist
 from omegaconf import OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
-from c4d.config import to_dict
-from c4d.errors import UserError
+from c4d_core.config import to_dict
+from c4d_core.errors import UserError
 from dynpt.checkpoint import load_checkpoint, save_checkpoint
 from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
 from dynpt.device import (apply_cudnn_flags, autocast, bf16_supported, cudnn_flags, ddp_backend,

@@ -7,8 +7,8 @@ import pytest
 import torch
 import torch.distributed as dist
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps, pair_memory_bytes
 from dynpt import device as dev
