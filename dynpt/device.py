@@ -51,6 +51,11 @@ def ddp_backend(device_type: str) -> str:
     return "nccl" if device_type == "cuda" else "gloo"
 
 
+def ddp_device_ids(device: torch.device) -> list[int] | None:
+    """DistributedDataParallel's `device_ids`: the process's one GPU, None for CPU modules."""
+    return [device.index] if device.type == "cuda" else None
+
+
 def pin_memory(device_type: str) -> bool:
     """Pin host batches (faster, asynchronous copies) only when they go to a GPU."""
     return device_type == "cuda"

@@ -33,7 +33,7 @@ from c4d_core.errors import UserError
 from dynpt.checkpoint import load_checkpoint, save_checkpoint
 from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
 from dynpt.device import (apply_cudnn_flags, autocast, bf16_supported, cudnn_flags, ddp_backend,
-                          peak_memory, reset_peak_memory, training_autocast_dtype, training_device)
+                          ddp_device_ids, peak_memory, reset_peak_memory, training_autocast_dtype, training_device)
 from dynpt.evaluate import evaluate_model, load_eval_scenes, track_image
 from dynpt.losses import LossWeights, dynpt_loss
 from dynpt.model import build_model
@@ -161,8 +161,7 @@ class Trainer:
         elif latest_checkpoint(self.out_dir) is not None:
             raise UserError(f"{self.out_dir} already holds checkpoints; add --resume to continue "
                             "that run, or set train.out_dir=... to a new folder")
-        self.ddp = (DistributedDataParallel(self.model, device_ids=[self.device.index]
-                                            if self.device.type == "cuda" else None)
+        self.ddp = (DistributedDataParallel(self.model, device_ids=ddp_device_ids(self.device))
                     if self.world_size > 1 else self.model)
         sources = list(cfg.data.sources)
         weights = list(cfg.data.weights) or [1.0] * len(sources)

@@ -29,6 +29,7 @@ def test_backend_device_and_pinning_choices():
     assert dist.Backend(dev.ddp_backend("cpu")) == dist.Backend.GLOO
     assert dev.training_device(True, 3) == torch.device("cuda", 3)
     assert dev.training_device(False, 3) == torch.device("cpu")
+    assert dev.ddp_device_ids(GPU) == [1] and dev.ddp_device_ids(torch.device("cpu")) is None
     assert dev.pin_memory("cuda") and not dev.pin_memory("cpu")
     stream = ShardStream([synthetic_shards(4, 2)], [1.0], load_config("dynpt", "tiny-cpu").data, 0)
     assert make_loader(stream, 2, 0, "cuda").pin_memory
@@ -154,3 +155,17 @@ def test_out_of_memory_halves_the_batch(monkeypatch):
     monkeypatch.setattr(source, "_run", lambda *a: (_ for _ in ()).throw(torch.cuda.OutOfMemoryError()))
     with pytest.raises(UserError, match="does not fit in GPU memory"):
         source.pointmaps(frames, edges)
+
+
+def test_checkpoint_rng_state_keeps_the_cuda_generators(monkeypatch):
+    """rng_state / set_rng_state with CUDA faked: the GPU generators' states go round the trip."""
+    gpu_states = [torch.arange(4, dtype=torch.uint8), torch.arange(4, 8, dtype=torch.uint8)]
+    restored = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_rng_state_all", lambda: gpu_states)
+    monkeypatch.setattr(torch.cuda, "set_rng_state_all", restored.append)
+    state = train_module.rng_state()
+    assert state["cuda"] is gpu_states
+    expected = torch.rand(3)
+    train_module.set_rng_state(state)
+    assert restored == [gpu_states] and torch.equal(torch.rand(3), expected)
