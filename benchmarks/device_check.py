@@ -159,6 +159,7 @@ def training_run(train_dir: Path, val_dir: Path, out: Path, sizes: Sizes) -> Non
         for _ in range(3):
             calib.train_step(batches)
         per_step = (time.perf_counter() - start) / 3
+        del batches  # its loader workers stop before the run starts its own
     finally:
         calib.close()
     steps = max(3, int(sizes.train_seconds / per_step))

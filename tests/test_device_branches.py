@@ -110,6 +110,9 @@ def test_tracker_and_pointmaps_under_autocast(monkeypatch):
     monkeypatch.setattr("dynpt.inference.inference_autocast_dtype", lambda t, s: torch.bfloat16)
     with tracker._autocast():
         assert torch.get_autocast_dtype("cpu") is torch.bfloat16 and torch.is_autocast_enabled("cpu")
+    video = np.random.default_rng(0).integers(0, 256, (10, 32, 32, 3), dtype=np.uint8)
+    result = tracker.track(video, np.array([[0, 5.0, 6.0], [4, 20.0, 11.0]]))  # both directions
+    assert result.tracks.dtype == np.float32 and np.isfinite(result.tracks).all()
     torch.manual_seed(0)
     source = Dust3rPointmaps(Dust3rNet(TINY_NET), device="cpu", batch_size=2)
     source.amp_dtype = torch.bfloat16
