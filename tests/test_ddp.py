@@ -112,7 +112,7 @@ def test_only_rank_0_writes_checkpoints_and_logs(runs, name):
     log = [json.loads(l) for l in (out / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == list(range(1, 7))  # one line per step, not one per rank
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == [
-        "step_00000003.pt", "step_00000006.pt"]
+        "last.pt", "step_00000003.pt", "step_00000006.pt"]  # last.pt: the newest, as a link
     events = list((out / "tb").glob("events.out.tfevents.*"))
     assert len(events) == (1 if name == "nodes" else 2)  # one writer per launch (split: 2 launches)
     ckpt = torch.load(out / "checkpoints" / "step_00000006.pt", weights_only=False)
