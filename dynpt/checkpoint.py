@@ -12,6 +12,7 @@ Layout (a `torch.save`d dict, readable with `torch.load(weights_only=True)`):
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import pickle
@@ -51,6 +52,12 @@ def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dic
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     payload = {"format": FORMAT, "config": model.config, "model": state, "step": int(step),
                "extra": extra or {}}
+    return save_atomic(path, payload)
+
+
+def save_atomic(path: str | os.PathLike, payload) -> Path:
+    """`torch.save(payload)` to `path` atomically; a failed write (disk full) is a `UserError`."""
+    path = Path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a handle: no temporary name inside
         try:
             torch.save(payload, fh)
@@ -60,7 +67,7 @@ def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dic
                 raise disk_error(path, cause) from exc
             if "write" not in str(exc).lower():
                 raise
-            raise disk_error(path, OSError(28, "the file could not be written (disk full?)")) from exc
+            raise disk_error(path, OSError(errno.ENOSPC, "the file could not be written")) from exc
     return path
 
 
