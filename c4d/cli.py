@@ -14,7 +14,7 @@ import sys
 import traceback
 
 from c4d import __version__
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 # name -> (module, one-line help), in the order of the data flow.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"c4d: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a write no command turned into a UserError: still one line
-        from c4d.files import DISK_ERRNOS, disk_error
+        from c4d_core.files import DISK_ERRNOS, disk_error
 
         if exc.errno not in DISK_ERRNOS or verbose:
             raise

@@ -6,8 +6,8 @@ import argparse
 import re
 from pathlib import Path
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -30,9 +30,9 @@ import torch.distributed as dist
 from omegaconf import OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
-from c4d.config import to_dict
-from c4d.errors import UserError
-from c4d.files import append_line, disk_error, write_text
+from c4d_core.config import to_dict
+from c4d_core.errors import UserError
+from c4d_core.files import append_line, disk_error, write_text
 from dynpt.checkpoint import CheckpointUnreadable, load_checkpoint, save_checkpoint
 from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
 from dynpt.evaluate import evaluate_model, load_eval_scenes, track_image

@@ -38,7 +38,7 @@ from c4d.cli import main
 from datagen.shards import CHECKSUMS, ShardWriter, decode_scene, iter_samples
 from dynpt.checkpoint import save_checkpoint
 from dynpt.model import build_model
-from c4d.config import load_config
+from c4d_core.config import load_config
 from tests.dynpt_testdata import synthetic_scene, synthetic_shards
 
 pytestmark = pytest.mark.faults

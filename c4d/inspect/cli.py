@@ -11,8 +11,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +94,7 @@ def _run_check(args, cfg) -> int:
                     "damaged bytes in them may go unnoticed; regenerate them to add checksums",
                     result.num_unverified)
     if args.out is not None:
-        from c4d.files import write_json
+        from c4d_core.files import write_json
 
         write_json(args.out / "check.json", {
             "source": args.source, "scenes": result.num_samples,

@@ -17,7 +17,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 
 # errno values of a failed write that the user fixes by choosing another place (or freeing space)
