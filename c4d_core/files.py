@@ -35,7 +35,7 @@ def disk_error(path: str | os.PathLike, exc: OSError) -> UserError:
             "output folder, then run the same command again: finished files are kept"
         )
     if exc.errno in (errno.ENOTDIR, errno.EEXIST):
-        parent = next((p for p in Path(path).parents if p.exists()), None)
+        parent = next((p for p in (Path(path), *Path(path).parents) if p.exists()), None)
         if parent is not None and not parent.is_dir():
             return UserError(f"cannot write {path}: {parent} is a file, not a folder; choose "
                              "another output folder")
