@@ -20,6 +20,7 @@ import logging
 import math
 import os
 import random
+import threading
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -32,7 +33,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from c4d_core.config import to_dict
 from c4d_core.errors import UserError
-from c4d_core.files import append_line, disk_error, write_text
+from c4d_core.files import DISK_ERRNOS, append_line, disk_error, write_text
 from dynpt.checkpoint import CheckpointUnreadable, load_checkpoint, save_checkpoint
 from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
 from dynpt.evaluate import evaluate_model, load_eval_scenes, track_image
@@ -122,6 +123,13 @@ def stretch_schedule(scheduler, total_steps: int) -> None:
     `train.steps`): the warm-up is kept, the annealing phase ends at the new last step."""
     scheduler.total_steps = total_steps
     scheduler._schedule_phases[-1]["end_step"] = float(total_steps - 1)
+
+
+def _quiet_disk_errors(args) -> None:
+    """`threading.excepthook` while training: a disk error in TensorBoard's writer thread prints
+    no traceback (the training thread meets it too and reports it as one line)."""
+    if not (isinstance(args.exc_value, OSError) and args.exc_value.errno in DISK_ERRNOS):
+        threading.__excepthook__(args)
 
 
 def next_batch(batches):
@@ -400,7 +408,15 @@ def train(cfg, resume: bool = False) -> dict:
         raise UserError("no training data: set data.sources=[DIR_OR_GLOB,...] (and data.weights) "
                         "to shard sets made with `c4d datagen`")
     trainer = Trainer(cfg, resume=resume)
+    hook, threading.excepthook = threading.excepthook, _quiet_disk_errors
     try:
-        return trainer.fit()
+        try:
+            return trainer.fit()
+        finally:
+            trainer.close()
+    except OSError as exc:  # TensorBoard's event file on a full disk (its own thread writes it)
+        if exc.errno not in DISK_ERRNOS:
+            raise
+        raise disk_error(exc.filename or trainer.out_dir / "tb", exc) from exc
     finally:
-        trainer.close()
+        threading.excepthook = hook
