@@ -207,9 +207,9 @@ class AssetLibrary:
                                 "above): add textured OBJ/GLB/GLTF meshes to `assets_dir`")
 
     def check_backgrounds(self) -> None:
-        """Decode every background image of the split once; `UserError` listing all unreadable
-        ones (so a bad file is found when the generator starts, not mid-run)."""
-        bad = [path for path in (self._background_paths[i] for i in self.background_ids)
+        """Decode every background image of the folder once (both splits); `UserError` listing
+        all unreadable ones, so a bad file is found when the generator starts, not mid-run."""
+        bad = [path for path in self._background_paths.values()
                if cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR) is None]
         if bad:
             names = ", ".join(repr(str(p)) for p in bad[:10]) + (" ..." if len(bad) > 10 else "")

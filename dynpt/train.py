@@ -123,6 +123,8 @@ def stretch_schedule(scheduler, total_steps: int) -> None:
     `train.steps`): the warm-up is kept, the annealing phase ends at the new last step."""
     scheduler.total_steps = total_steps
     scheduler._schedule_phases[-1]["end_step"] = float(total_steps - 1)
+    scheduler.last_epoch -= 1
+    scheduler.step()  # the optimiser's rate for the next step, now on the new schedule
 
 
 def _quiet_disk_errors(args) -> None:

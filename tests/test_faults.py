@@ -52,13 +52,10 @@ TRAIN = ["--config", "tiny-cpu", "data.crop_size=[32,32]", "data.num_frames=6",
          "eval.every=0"]
 
 
-def c4d(*args: str, check_code: int | None = None, **kwargs) -> subprocess.CompletedProcess:
+def c4d(*args: str, **kwargs) -> subprocess.CompletedProcess:
     """`python -m c4d ARGS` in a subprocess (one torch thread)."""
-    run = subprocess.run([sys.executable, "-m", "c4d", *args], env=ENV, cwd=ROOT,
-                         capture_output=True, text=True, timeout=240, **kwargs)
-    if check_code is not None:
-        assert run.returncode == check_code, run.stderr[-2000:]
-    return run
+    return subprocess.run([sys.executable, "-m", "c4d", *args], env=ENV, cwd=ROOT,
+                          capture_output=True, text=True, timeout=240, **kwargs)
 
 
 def assert_one_line_error(code: int, err: str, *words: str) -> str:
@@ -357,16 +354,16 @@ def datagen_process(out: Path, workers: int, num_scenes: int = 3) -> subprocess.
 
 def test_datagen_killed_then_rerun_gives_sha_identical_shards(tmp_path):
     reference = tmp_path / "reference"
-    c4d("datagen", "--num-scenes", "3", "--scenes-per-shard", "1", "--out", str(reference),
-        "--workers", "1", *TINY_DATAGEN, check_code=0)
+    assert main(["datagen", "--num-scenes", "2", "--scenes-per-shard", "1", "--out",
+                 str(reference), "--workers", "1", *TINY_DATAGEN]) == 0
     out = tmp_path / "killed"
-    proc = datagen_process(out, workers=1)
+    proc = datagen_process(out, workers=1, num_scenes=2)
     wait_for(lambda: (out / "train-000000.tar").exists() or proc.poll() is not None, 200,
              "the first shard")
     proc.kill()
     proc.wait()
-    c4d("datagen", "--num-scenes", "3", "--scenes-per-shard", "1", "--out", str(out),
-        "--workers", "1", *TINY_DATAGEN, check_code=0)
+    assert main(["datagen", "--num-scenes", "2", "--scenes-per-shard", "1", "--out", str(out),
+                 "--workers", "1", *TINY_DATAGEN]) == 0
     names = sorted(p.name for p in reference.iterdir())
     assert names == sorted(p.name for p in out.iterdir())
     assert [sha(reference / n) for n in names] == [sha(out / n) for n in names]
@@ -406,10 +403,10 @@ def weights(path: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
-    """An 8-step training run in one go, the reference of the resume tests."""
+    """An 8-step training run in one go, the reference of the resume test."""
     out = tmp_path_factory.mktemp("train") / "full"
-    c4d("train", *TRAIN, f"data.sources=[{synthetic_shards(12, 3)}]", f"train.out_dir={out}",
-        "train.ckpt_every=2", "train.steps=8", check_code=0)
+    assert main(["train", *TRAIN, f"data.sources=[{synthetic_shards(12, 3)}]",
+                 f"train.out_dir={out}", "train.ckpt_every=2", "train.steps=8"]) == 0
     return out
 
 
@@ -419,7 +416,10 @@ def assert_same_run(a: Path, b: Path) -> None:
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
 
 
-def test_training_killed_then_resumed_is_bit_identical(tmp_path, uninterrupted):
+def test_training_killed_then_resumed_is_bit_identical(tmp_path, uninterrupted, caplog, capsys):
+    """kill -9 after the second checkpoint; the newest checkpoint is then cut short and the log
+    ends in a torn line (as a crash inside the write leaves them): --resume falls back to the
+    previous checkpoint, repairs the log and ends with the uninterrupted run's bytes."""
     shards = synthetic_shards(12, 3)
     out = tmp_path / "killed"
     proc = train_process(out, shards, "train.steps=8")
@@ -428,55 +428,43 @@ def test_training_killed_then_resumed_is_bit_identical(tmp_path, uninterrupted):
              "two checkpoints")
     proc.kill()
     proc.wait()
-    c4d("train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}", "train.ckpt_every=2",
-        "train.steps=8", "--resume", check_code=0)
-    assert_same_run(uninterrupted, out)
-
-
-def test_a_truncated_checkpoint_and_a_torn_log_line_are_repaired_on_resume(tmp_path, uninterrupted):
-    shards = synthetic_shards(12, 3)
-    out = tmp_path / "run"
-    c4d("train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}", "train.ckpt_every=2",
-        "train.steps=8", "train.stop_after=6", check_code=0)
-    newest = out / "checkpoints/step_00000006.pt"
-    newest.write_bytes(newest.read_bytes()[:5000])  # cut by a crash
+    newest = sorted(ckpts.glob("step_*.pt"))[-1]
+    newest.write_bytes(newest.read_bytes()[:5000])
     with open(out / "log.jsonl", "a") as f:
-        f.write('{"step": 7, "lr": 0.00')  # a torn append
-    run = c4d("train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}",
-              "train.ckpt_every=2", "train.steps=8", "--resume", check_code=0)
-    assert "skipping step_00000006.pt" in run.stderr and "torn last line" in run.stderr
-    assert "weights_only" not in run.stderr and "\x1b[" not in run.stderr
+        f.write('{"step": 7, "lr": 0.00')
+    assert main(["train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}",
+                 "train.ckpt_every=2", "train.steps=8", "--resume"]) == 0
+    assert f"skipping {newest.name}" in caplog.text and "torn last line" in caplog.text
+    assert "weights_only" not in caplog.text and "\x1b[" not in caplog.text
     assert_same_run(uninterrupted, out)
 
 
-def test_a_size_limit_during_the_log_append_leaves_whole_lines(tmp_path):
+def test_a_size_limit_during_training_leaves_whole_lines(tmp_path, capsys):
     """RLIMIT_FSIZE (EFBIG, SIGXFSZ ignored) cuts writes like a full disk, for this process only."""
     shards = synthetic_shards(12, 3)
     out = tmp_path / "run"
-    c4d("train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}", "train.steps=40",
-        "train.stop_after=2", "train.ckpt_every=100", check_code=0)
-    size = (out / "config.yaml").stat().st_size + 100  # config.yaml is rewritten; log.jsonl grows
+    args = [*TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}", "train.steps=40",
+            "train.ckpt_every=100"]
+    assert main(["train", *args, "train.stop_after=2"]) == 0
+    size = (out / "config.yaml").stat().st_size + 100  # config.yaml is rewritten; the rest grows
 
     def limit():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
 
-    run = c4d("train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}", "train.steps=40",
-              "train.ckpt_every=100", "--resume", preexec_fn=limit)
+    run = c4d("train", *args, "--resume", preexec_fn=limit)
     assert_one_line_error(run.returncode, run.stderr, "file size limit exceeded", str(out))
     lines = (out / "log.jsonl").read_text()
     assert lines.endswith("\n") and [r["step"] for r in map(json.loads, lines.splitlines())][:2] == [1, 2]
     assert no_temporaries(out)
-    c4d("train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}", "train.steps=40",
-        "train.ckpt_every=100", "train.stop_after=1", "--resume", check_code=0)
 
 
 def test_resume_with_more_steps_continues_and_a_crash_before_the_first_checkpoint_reruns(tmp_path):
     shards = synthetic_shards(12, 3)
     out = tmp_path / "run"
     args = [*TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}", "train.ckpt_every=2"]
-    c4d("train", *args, "train.steps=4", check_code=0)
-    c4d("train", *args, "train.steps=7", "--resume", check_code=0)
+    assert main(["train", *args, "train.steps=4"]) == 0
+    assert main(["train", *args, "train.steps=7", "--resume"]) == 0
     steps = [r["step"] for r in log_lines(out)]
     assert steps == list(range(1, 8))
     # The annealing is rebuilt to end at step 7: steps 5-7 use the rates of a 7-step schedule
@@ -496,8 +484,8 @@ def test_resume_with_more_steps_continues_and_a_crash_before_the_first_checkpoin
     fresh = tmp_path / "fresh"
     fresh.mkdir()
     (fresh / "log.jsonl").write_text('{"step": 1, "lr": 0.1}\n{"step": 2, "lr": 0.1}\n')
-    c4d("train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={fresh}", "train.steps=3",
-        check_code=0)
+    assert main(["train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={fresh}",
+                 "train.steps=3"]) == 0
     assert [r["step"] for r in log_lines(fresh)] == [1, 2, 3]
 
 
@@ -526,5 +514,5 @@ def test_bad_inputs_are_one_line(tmp_path, capsys, inputs):
     for name in ("a.png", "b.jpg", "c.png"):
         (backgrounds / name).write_bytes(b"not an image")
     code = main(["datagen", "--num-scenes", "1", "--out", str(tmp_path / "d"), *TINY_DATAGEN,
-                 f"backgrounds_dir={backgrounds}", "assets.heldout_fraction=0"])
+                 f"backgrounds_dir={backgrounds}"])
     assert_one_line_error(code, capsys.readouterr().err, "3 background image(s)", "a.png", "c.png")
