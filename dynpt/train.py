@@ -9,8 +9,8 @@ Files in `train.out_dir`: `config.yaml`, `checkpoints/step_XXXXXXXX.pt` (the las
 per step: losses, learning rate), `tb/` (TensorBoard). A checkpoint holds the model, optimiser,
 scheduler, step, RNG states and the data-stream position, so `--resume` continues the same run.
 `--resume` starts from the newest readable step checkpoint (a damaged newest one is skipped with
-a warning), drops log lines past its step (and a torn last line), and stretches the OneCycle
-schedule's annealing to a changed `train.steps`.
+a warning), drops log lines past its step (and a torn last line), and rebuilds the OneCycle
+annealing to end at a changed `train.steps` (docs/TRAINING.md).
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def load_latest_checkpoint(out_dir: str | Path, model_cfg) -> tuple[Path, dict]:
                     "warnings above); start a new run in another train.out_dir")
 
 
-def stretch_schedule(scheduler, total_steps: int) -> None:
+def rebuild_annealing(scheduler, total_steps: int) -> None:
     """Make a OneCycleLR end at `total_steps` instead of its stored total (a resume with another
     `train.steps`): the warm-up is kept, the annealing phase ends at the new last step."""
     scheduler.total_steps = total_steps
@@ -229,7 +229,7 @@ class Trainer:
             log.info("train.steps changed from %d to %d: the learning-rate annealing now ends at "
                      "step %d", self.scheduler.total_steps, self.cfg.train.steps,
                      self.cfg.train.steps)
-            stretch_schedule(self.scheduler, self.cfg.train.steps)
+            rebuild_annealing(self.scheduler, self.cfg.train.steps)
         self.step, self.best = int(ckpt["step"]), extra.get("best")
         set_rng_state(extra["rng"][min(self.rank, len(extra["rng"]) - 1)])
         log.info("resumed %s at step %d", path, self.step)
