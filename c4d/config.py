@@ -246,7 +246,7 @@ def to_dict(cfg: DictConfig) -> dict:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def to_yaml(cfg: DictConfig) -> str:
-    """The resolved config as YAML text, keys in the order of the presets (what `c4d config show`
-    prints and every run folder keeps)."""
-    return yaml.safe_dump(to_dict(cfg), sort_keys=False)
+def to_yaml(cfg: DictConfig | dict) -> str:
+    """The resolved config (or its `to_dict` copy) as YAML text, keys in the order of the presets:
+    what `c4d config show` prints and every run folder keeps."""
+    return yaml.safe_dump(cfg if isinstance(cfg, dict) else to_dict(cfg), sort_keys=False)

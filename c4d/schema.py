@@ -73,8 +73,12 @@ class Rule:
                 bounds.append(f"> {_num(self.above)}")
             text = " ".join([text, *bounds])
             if self.kind == "list":
-                dims = "x".join("N" if n is None else str(n) for n in self.shape) if self.shape else "N"
-                text = f"a list ({dims}) of {text}" + (", non-decreasing" if self.ordered else "")
+                if len(self.shape) > 1:
+                    dims = "x".join("N" if n is None else str(n) for n in self.shape)
+                    text = f"a {dims} list of {text}"
+                else:
+                    text = f"a list of {self.shape[0] if self.shape and self.shape[0] else ''} {text}"
+                text = text.replace("  ", " ") + (", non-decreasing" if self.ordered else "")
             else:
                 text = ("an " if text[0] in "aeiou" else "a ") + text
         return text + (" (or null)" if self.nullable else "")
@@ -83,10 +87,11 @@ class Rule:
         """Raise `UserError` unless `value` is valid for `key`."""
         if value is None and self.nullable:
             return
-        if not self._valid(value):
+        if not self.accepts(value):
             raise UserError(f"`{key}` = {_show(value)} is out of range: it must be {self.describe()}")
 
-    def _valid(self, value: Any) -> bool:
+    def accepts(self, value: Any) -> bool:
+        """Whether `value` (not null) is of the rule's type and in its range."""
         if self.choices:
             return value in self.choices and type(value) is type(self.choices[0])
         if self.kind == "list":

@@ -120,7 +120,6 @@ def run(args: argparse.Namespace) -> int:
                     "and no trajectory smoothing (stage 2)")
     flow = _FlowWithProgress(build_flow(cfg.flow, device=cfg.device))
     seconds["load_models"] = time.perf_counter() - start
-    write_text(out / "config.yaml", to_yaml(cfg))
 
     # 2. Frames at the network's resolution.
     start = time.perf_counter()
@@ -132,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
     seconds["read_video"] = time.perf_counter() - start
     log.info("%d frames of %dx%d (source %dx%d)", T, W, H, video.preprocessing.source_hw[1],
              video.preprocessing.source_hw[0])
+
+    write_text(out / "config.yaml", to_yaml(cfg))  # every input read: what runs now
 
     # 3. Tracks on the same frames.
     tracks = None
