@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import argparse
 
-from c4d.config import available_presets, load_config, to_yaml
-from c4d.errors import UserError
-from c4d.schema import ROOTS
+from c4d_core.config import available_presets, load_config, to_yaml
+from c4d_core.errors import UserError
+from c4d_core.schema import ROOTS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from c4d.config import flag_overrides, load_config, to_yaml
-from c4d.files import write_text
-from c4d.errors import UserError
+from c4d_core.config import flag_overrides, load_config, to_yaml
+from c4d_core.errors import UserError
+from c4d_core.files import write_text
 
 log = logging.getLogger("c4d.run")
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from c4d.config import defaults_from
+from c4d_core.config import defaults_from
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from c4d.cli import main
-from c4d.config import load_config
+from c4d_core.config import load_config
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.video_input import dust3r_resize, load_video_input, plan_preprocessing
 from datagen.generate import generate_scene
@@ -179,8 +179,8 @@ def test_one_yaml_file_holds_a_whole_run(inputs, tmp_path, capsys):
 
 def test_out_of_gpu_memory_advises_a_real_setting(inputs, monkeypatch):
     """The advice names `c4d run`'s own flag and key (it said `--device`, which `c4d run` lacks)."""
-    from c4d.errors import UserError
-    from c4d.schema import RULES
+    from c4d_core.errors import UserError
+    from c4d_core.schema import RULES
     from c4d_pipeline.cli_run import add_arguments
     from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
 

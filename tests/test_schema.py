@@ -8,9 +8,9 @@ import pytest
 import yaml
 
 from c4d.cli import main
-from c4d.config import config_dir, load_config, section_defaults, to_dict
-from c4d.errors import UserError
-from c4d.schema import ROOTS, RULES, leaf_keys, validate
+from c4d_core.config import config_dir, load_config, section_defaults, to_dict
+from c4d_core.errors import UserError
+from c4d_core.schema import ROOTS, RULES, leaf_keys, validate
 from c4d_pipeline.motion_mask import MotionMaskConfig
 from dynpt.losses import LossWeights
 

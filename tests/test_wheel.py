@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from c4d.config import available_presets
+from c4d_core.config import available_presets
 
 REPO = Path(__file__).resolve().parents[1]
 TORCH = os.environ.get("C4D_TEST_TORCH", "torch==2.13.0")  # the Makefile's pin

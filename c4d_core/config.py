@@ -7,10 +7,10 @@ editable install alike; a source checkout run without installing reads its `conf
 A config file may start with `_base_: other.yaml` (a path relative to itself), `_base_: c4d/tiny`
 (a shipped preset by name: `<group>/<preset>`, no `.yaml`), or a list of them; the bases are
 loaded first and the file's keys are merged over them. A config is the group's schema defaults
-(its root preset, `c4d.schema.ROOTS`), then the preset, then extra files given with `--config`,
+(its root preset, `c4d_core.schema.ROOTS`), then the preset, then extra files given with `--config`,
 then command-line overrides; each may only set keys the root has, with values of the same type
 (a misspelled key or a wrong type is a `UserError` that names the key), and the result must pass
-the group's range rules (`c4d.schema.RULES`) before any command writes anything.
+the group's range rules (`c4d_core.schema.RULES`) before any command writes anything.
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from typing import Any, Iterable, Mapping
 import yaml
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from c4d import schema
-from c4d.errors import UserError
+from c4d_core import schema
+from c4d_core.errors import UserError
 
 
 @functools.lru_cache(maxsize=None)

@@ -20,7 +20,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 # The preset of each group that holds every key with its default value.
 ROOTS: dict[str, str] = {
