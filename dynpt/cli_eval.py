@@ -9,6 +9,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from c4d_core.config import load_config, parse_overrides
+from c4d_core.errors import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,16 +48,23 @@ def run(args: argparse.Namespace) -> int:
     ckpt = load_checkpoint(args.ckpt)
     cfg = eval_config(ckpt, args.config, args.overrides)
     tracker = Tracker(model_from_checkpoint(ckpt, args.ckpt), args.device)
-    items, kind = load_source(args.data, cfg)
+    skipped: list[str] = []  # scenes that could not be read (warned about, counted in the table)
+    items, kind = load_source(args.data, cfg, skipped)
+    if not items:
+        raise UserError(f"no readable scene in {args.data} ({len(skipped)} skipped, see the "
+                        "warnings above); check it with `c4d inspect SOURCE --check`")
     result = evaluate_items(tracker, items, args.mode)
     # The reference that gives the numbers a meaning: no motion, always visible, all static.
     baseline = evaluate_items(ZeroMotionBaseline(), items, args.mode)
+    for summary in (result["summary"], baseline["summary"]):
+        summary["num_skipped"] = len(skipped)
     size = "x".join(str(v) for v in cfg.resolution)
     tracks = f", {cfg.num_tracks} tracks per video" if kind == "shards" else ""
     title = f"{Path(args.data).name} ({args.mode} queries, videos at {size}{tracks})"
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
     out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{args.mode}"
     info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": args.mode,
+            "skipped": skipped,
             "resolution": list(cfg.resolution), "num_tracks": cfg.num_tracks if kind == "shards" else None}
     json_path, md_path = write_report(result, baseline, out, title, info)
     print(md_path.read_text(), end="")
