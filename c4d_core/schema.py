@@ -227,7 +227,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "tracks.max_sampled_fraction": number(high=1.0, above=0), "tracks.depth_tolerance": number(0.0),
     },
     "dynpt": {
-        "seed": SEED,
+        "seed": SEED, "threads": POSITIVE,  # 0: automatic (c4d_core.system.configure_threads)
         "model.cnn_widths": numbers(4, low=1, item="int"), "model.feature_dim": COUNT,
         "model.corr_levels": COUNT, "model.corr_radius": POSITIVE, "model.corr_hidden_dim": COUNT,
         "model.corr_out_dim": COUNT, "model.hidden_dim": COUNT, "model.num_heads": COUNT,
@@ -319,7 +319,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "flythrough.splat_radius": POSITIVE, "flythrough.seed": SEED,
     },
     "pointmaps": {
-        "seed": SEED, "data.sources": texts(), "data.max_scenes": POSITIVE, "data.max_gap": COUNT,
+        "seed": SEED, "threads": POSITIVE, "data.sources": texts(), "data.max_scenes": POSITIVE,
+        "data.max_gap": COUNT,
         "data.hflip_prob": fraction(),
         "model.patch_size": COUNT, "model.enc_embed_dim": COUNT, "model.enc_depth": COUNT,
         "model.enc_num_heads": COUNT, "model.dec_embed_dim": COUNT, "model.dec_depth": COUNT,
