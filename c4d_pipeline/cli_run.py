@@ -86,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     log.info("loading the pointmap network from %s", args.pointmaps)
-    source = Dust3rPointmaps.from_checkpoint(args.pointmaps, cfg.device, args.pointmap_batch, progress=True)
+    source = Dust3rPointmaps.from_checkpoint(args.pointmaps, cfg.device, args.pointmap_batch, progress=True,
+                                             precision=cfg.pointmaps.precision)
     tracker = None
     if args.tracker:
         from dynpt.inference import load_tracker

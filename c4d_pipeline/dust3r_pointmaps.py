@@ -4,9 +4,12 @@ Implements `c4d_pipeline.pointmaps.PointmapSource`: frames uint8 (T,H,W,3), alre
 resolution (`c4d_pipeline.video_input.dust3r_resize`: H, W multiples of 16), and directed edges
 (E,2) go in; `PairwisePointmaps` come out, pts_i / pts_j both in view i's camera frame, conf >= 1.
 
-Pairs run in batches: on a GPU under autocast (bfloat16 where supported, else float16; the heads
-stay in float32) with a batch size estimated from free GPU memory and halved on out-of-memory; on
-a CPU in float32 with a fixed batch size.
+Pairs run in batches, in float32 by default as the official inference does (`precision='fp32'`,
+config key `pointmaps.precision`). `precision='bf16'` runs the encoder and decoders under bfloat16
+autocast on a GPU (the heads stay in float32): faster and smaller, but per-pixel pointmaps and
+confidences move by 0.1-6 % from the float32 result (measured with the same autocast on the CPU,
+docs/RESULTS.md), so it is an explicit choice; on a CPU it is ignored. On a GPU the batch size is
+estimated from free memory and halved on out-of-memory; on a CPU it is fixed.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from c4d_pipeline.dust3r_net import Dust3rNet, load_dust3r
 from c4d_pipeline.pointmaps import PairwisePointmaps, sanitize
 
 log = logging.getLogger(__name__)
+
+PRECISIONS = ("fp32", "bf16")  # values of the config key pointmaps.precision
 
 
 def to_network_input(frames: np.ndarray) -> torch.Tensor:
@@ -46,27 +51,33 @@ class Dust3rPointmaps:
 
     net: the network (eval mode); device: torch device (default cuda if available, else cpu);
     batch_size: pairs per forward pass, or 0 for automatic (GPU: from free memory; CPU: 2);
-    progress: show a progress bar over the pairs.
+    progress: show a progress bar over the pairs; precision: 'fp32' (default, the official
+    inference) or 'bf16' (bfloat16 autocast on a GPU, float32 heads; ignored on a CPU).
     """
 
     def __init__(self, net: Dust3rNet, device: str | torch.device | None = None, batch_size: int = 0,
-                 progress: bool = False):
+                 progress: bool = False, precision: str = "fp32"):
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.net = net.to(self.device).eval()
         if batch_size < 0:
             raise UserError(f"pointmap batch size must be >= 0 (0 = automatic), got {batch_size}")
+        if precision not in PRECISIONS:
+            raise UserError(f"pointmaps.precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        if precision == "bf16" and self.device.type == "cuda" and not torch.cuda.is_bf16_supported():
+            raise UserError("this GPU has no bfloat16 support; use pointmaps.precision=fp32")
         self.batch_size = batch_size
         self.progress = progress
+        self.autocast = precision == "bf16" and self.device.type == "cuda"
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device=None, batch_size: int = 0,
-                        progress: bool = False) -> "Dust3rPointmaps":
+                        progress: bool = False, precision: str = "fp32") -> "Dust3rPointmaps":
         """Load an official DUSt3R/MASt3R/MonST3R checkpoint file (see `load_dust3r`)."""
         net, report = load_dust3r(path)
         if report.ignored_keys:
             log.info("pointmap checkpoint %s: ignored %d tensors not used for pointmaps",
                      path, len(report.ignored_keys))
-        return cls(net, device, batch_size, progress)
+        return cls(net, device, batch_size, progress, precision)
 
     @property
     def image_size(self) -> int:
@@ -86,11 +97,7 @@ class Dust3rPointmaps:
         """Network outputs for one batch of pairs, moved to the CPU as float32 numpy arrays."""
         img1 = images[idx_i].to(self.device, non_blocking=True)  # (b,3,H,W)
         img2 = images[idx_j].to(self.device, non_blocking=True)
-        if self.device.type == "cuda":
-            dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
-            with torch.autocast("cuda", dtype=dtype):
-                outputs = self.net(img1, img2)
-        else:
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast):
             outputs = self.net(img1, img2)
         return [o.float().cpu().numpy() for o in outputs]
 
