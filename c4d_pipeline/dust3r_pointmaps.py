@@ -6,9 +6,10 @@ resolution (`c4d_pipeline.video_input.dust3r_resize`: H, W multiples of 16), and
 
 Pairs run in batches, in float32 by default as the official inference does (`precision='fp32'`,
 config key `pointmaps.precision`). `precision='bf16'` runs the encoder and decoders under bfloat16
-autocast on a GPU (the heads stay in float32): faster and smaller, but per-pixel pointmaps and
-confidences move by 0.1-6 % from the float32 result (measured with the same autocast on the CPU,
-docs/RESULTS.md), so it is an explicit choice; on a CPU it is ignored. On a GPU the batch size is
+autocast on a GPU (the heads stay in float32): faster and smaller, but pointmaps move by about
+1 % per pixel (median; up to 5 % at the 99th percentile) from the float32 result (measured with
+the same autocast on the CPU, docs/RESULTS.md section 5), so it is an explicit choice; on a CPU
+it is ignored. On a GPU the batch size is
 estimated from free memory and halved on out-of-memory; on a CPU it is fixed.
 """
 

@@ -52,8 +52,8 @@ def plan_preprocessing(source_hw: tuple[int, int], size: int, square_ok: bool = 
     if size < PATCH:
         raise UserError(f"network image size {size} is smaller than one {PATCH}-pixel patch; use 512 or 224")
     # The long side's new length first, then each side as round(side * long / max(H, W)), in this
-    # order of operations: at exact .5 ties (a 402x384 image at 224) another order rounds the
-    # other way and the crop shifts by a pixel.
+    # order of operations, as dust3r's: at exact .5 ties (a 402x384 image at 224) another order
+    # rounds the other way and the resized image gains a column.
     long_side = round(224 * max(W / H, H / W)) if size == 224 else size
     rh, rw = round(H * long_side / max(H, W)), round(W * long_side / max(H, W))
     cy, cx = rh // 2, rw // 2
