@@ -16,19 +16,20 @@ official code side by side with ours; no official code is needed to run these te
   pass (20 iterations) gave the unpadded upsampled flow of iterations 1, 2, 5, 10 and 20.
 - DUSt3R family (<name>.npz): tiny backbones (encoder 64 wide, 2 blocks, 4 heads; decoder 48 wide,
   3 heads, 12 blocks for DPT heads, which the official factory requires, else 2) with the released
-  heads unchanged: naver/dust3r `AsymmetricCroCo3DStereo` with the 512 DPT head and with the 224
-  linear head, one whose model string omits the head counts (CroCo's defaults: 12 encoder, 16
-  decoder heads), naver/mast3r `AsymmetricMASt3R` ('catmlp+dpt', desc24, two confidences) and
-  Junyi42/monst3r's `AsymmetricCroCo3DStereo` (freeze='encoder'), each saved as an official
-  checkpoint ({'model', 'args': Namespace(model=<string>)}), read back with the official
-  `load_model` and run with the official `load_images` (size 64: 64x48 landscape, 48x64 portrait)
-  and `inference` on frames 0 and 2 of two rendered scenes (96x128 and 128x96, `c4d datagen`
-  movi-e-panning seeds 3 and 4). The golden keeps the preprocessed frames and pts3d / conf of both
-  views (MASt3R's descriptors are not kept: this project does not use them).
+  heads unchanged: naver/dust3r `AsymmetricCroCo3DStereo` with the 512 DPT head, with the 224
+  linear head, and with the linear head and a model string that omits the head counts (encoder 48
+  and decoder 64 wide, so CroCo's defaults of 12 and 16 heads apply); naver/mast3r
+  `AsymmetricMASt3R` ('catmlp+dpt', desc24, two confidences); Junyi42/monst3r's
+  `AsymmetricCroCo3DStereo` (freeze='encoder'). Each was saved as an official checkpoint
+  ({'model', 'args': Namespace(model=<string>)}), read back with the official `load_model` and run
+  with the official `load_images` (size 64: 64x48 landscape, 48x64 portrait) and `inference` on
+  frames 0 and 2 of two rendered scenes (96x128 and 128x96, height x width; `c4d datagen`
+  movi-e-panning, seeds 3 and 4). The golden keeps the preprocessed frames and pts3d / conf of
+  both views (MASt3R's descriptors are not kept: this project does not use them).
 - Preprocessing (preprocessing.npz): the official `load_images` at 512 and 224 on uniform-noise
-  images (`tests.golden.noise_image`) of 16 sizes, among them exact .5 rounding ties (402x384,
-  384x402, 192x393 at 224), and on the two rendered frames: the output size and the SHA-256 of
-  its bytes.
+  images (`tests.golden.noise_image`) of 16 sizes, among them exact .5 rounding ties at 224
+  (402x384, 384x402, 192x393, width x height), and on the two rendered frames: the output size
+  and the SHA-256 of its bytes.
 """
 
 import argparse
