@@ -25,10 +25,10 @@ from tqdm import tqdm
 from c4d_core.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rNet, load_dust3r
 from c4d_pipeline.pointmaps import PairwisePointmaps, sanitize
+from dynpt.device import (autocast, bf16_supported, free_memory, pair_batch_size, pin_memory,
+                          pointmap_autocast_dtype)
 
 log = logging.getLogger(__name__)
-
-PRECISIONS = ("fp32", "bf16")  # values of the config key pointmaps.precision
 
 
 def to_network_input(frames: np.ndarray) -> torch.Tensor:
@@ -60,15 +60,11 @@ class Dust3rPointmaps:
                  progress: bool = False, precision: str = "fp32"):
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.net = net.to(self.device).eval()
+        self.amp_dtype = pointmap_autocast_dtype(self.device.type, precision, bf16_supported(self.device))
         if batch_size < 0:
             raise UserError(f"pointmap batch size must be >= 0 (0 = automatic), got {batch_size}")
-        if precision not in PRECISIONS:
-            raise UserError(f"pointmaps.precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
-        if precision == "bf16" and self.device.type == "cuda" and not torch.cuda.is_bf16_supported():
-            raise UserError("this GPU has no bfloat16 support; use pointmaps.precision=fp32")
         self.batch_size = batch_size
         self.progress = progress
-        self.autocast = precision == "bf16" and self.device.type == "cuda"
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device=None, batch_size: int = 0,
@@ -86,19 +82,16 @@ class Dust3rPointmaps:
         return self.net.cfg.img_size
 
     def _auto_batch(self, height: int, width: int) -> int:
-        if self.device.type != "cuda":
-            return 2
-        free, _ = torch.cuda.mem_get_info(self.device)
         weights = sum(p.numel() * p.element_size() for p in self.net.parameters())
-        budget = 0.7 * free - weights * 0.1
-        return int(np.clip(budget // pair_memory_bytes(self.net, height, width), 1, 64))
+        return pair_batch_size(free_memory(self.device), weights,
+                               pair_memory_bytes(self.net, height, width))
 
     @torch.no_grad()
     def _run(self, images: torch.Tensor, idx_i: np.ndarray, idx_j: np.ndarray):
         """Network outputs for one batch of pairs, moved to the CPU as float32 numpy arrays."""
         img1 = images[idx_i].to(self.device, non_blocking=True)  # (b,3,H,W)
         img2 = images[idx_j].to(self.device, non_blocking=True)
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast):
+        with autocast(self.device.type, self.amp_dtype):
             outputs = self.net(img1, img2)
         return [o.float().cpu().numpy() for o in outputs]
 
@@ -116,7 +109,7 @@ class Dust3rPointmaps:
         if len(edges) and (edges.min() < 0 or edges.max() >= T):
             raise UserError(f"pointmap pairs refer to frames outside 0..{T - 1}")
         images = to_network_input(frames)  # (T,3,H,W)
-        if self.device.type == "cuda":
+        if pin_memory(self.device.type):
             images = images.pin_memory()
         E = len(edges)
         out = {k: np.empty((E, H, W, 3), np.float32) for k in ("pts_i", "pts_j")}
