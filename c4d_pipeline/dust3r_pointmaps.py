@@ -124,7 +124,7 @@ class Dust3rPointmaps:
             except torch.cuda.OutOfMemoryError:
                 if batch == 1:
                     raise UserError(f"one {W}x{H} image pair does not fit in GPU memory; use a smaller "
-                                    "video size or run on the CPU (--device cpu)") from None
+                                    "network size (--size 224) or run on the CPU (device=cpu)") from None
                 batch = max(1, batch // 2)
                 torch.cuda.empty_cache()
                 log.info("pointmaps: out of GPU memory, batch size lowered to %d pairs", batch)
