@@ -111,13 +111,13 @@ class _CameraMotion(torch.autograd.Function):
         inv_z = z.clamp_min(1e-6).reciprocal_()  # (n,P)
         uv = proj[:, :2].mul_(inv_z[:, None])  # (n,2,P) pixels in view j
         diff = uv - target  # (n,2,P) F_ego - F in image pixels
-        err = diff.abs().mul_(px_scale)  # reference pixels
-        keep = ((err < max_px) & valid[:, None]).to(err.dtype)  # (n,2,P) 1 = counted
-        loss = err.mul_(keep).sum()
+        sign = diff.sign()
+        keep = ((diff.abs_() < max_px / px_scale) & valid[:, None]).to(diff.dtype)  # (n,2,P) 1 = counted
+        loss = torch.dot(diff.flatten(), keep.flatten()) * px_scale  # reference pixels
         if any(ctx.needs_input_grad[:3]):
             g_proj = torch.empty_like(proj)  # (n,3,P) d loss / d proj
             g_uv = g_proj[:, :2]
-            torch.mul(diff.sign_(), keep, out=g_uv).mul_((px_scale * inv_z)[:, None])  # at fixed z
+            torch.mul(sign, keep, out=g_uv).mul_((px_scale * inv_z)[:, None])  # at fixed z
             torch.mul(g_uv[:, 0], uv[:, 0], out=g_proj[:, 2])
             g_proj[:, 2].addcmul_(g_uv[:, 1], uv[:, 1]).neg_()  # d/dz = -(g_u u + g_v v) / z
             grad_cam = torch.zeros_like(cam).index_add_(0, frames, torch.bmm(mat.transpose(1, 2), g_proj))
