@@ -146,13 +146,8 @@ def rescale_world(init: Initialisation, image_size: tuple[int, int], world_scale
                    edge_scale=init.edge_scale * factor, edge_translation=init.edge_translation * factor)
 
 
-def _channels_first(points: torch.Tensor) -> torch.Tensor:
-    """(T,H,W,3) -> (T,3,H*W) contiguous."""
-    return points.flatten(1, 2).transpose(1, 2).contiguous()
-
-
 def _shared_cam(state):
-    return (_channels_first(state.params.camera_points()),)
+    return (state.params.camera_points_channels_first(),)  # (T,3,P)
 
 
 def _shared_world(state):
