@@ -99,7 +99,7 @@ def baseline_case(variant: str, iters: int, threads: int) -> dict:
     'C4D stage 1' (default config) or 'C4D GA only'; and the process's peak RSS."""
     import numpy as np
 
-    from c4d.config import load_config
+    from c4d_core.config import load_config
     from c4d_pipeline.alignment import initialise
     from c4d_pipeline.flow import build_flow
     from c4d_pipeline.motion_mask import ground_truth_motion_masks

@@ -181,7 +181,7 @@ def test_result_equals_the_autograd_optimiser_within_rounding_drift():
 
 
 def test_a_registered_objective_is_one_function_and_one_weight_key(case, monkeypatch, tmp_path):
-    from c4d.config import CONFIG_DIR
+    from c4d_core.config import CONFIG_DIR
     from c4d_pipeline import objectives
 
     scene, edges, flows = case
