@@ -88,14 +88,14 @@ def global_alignment_sum(world: torch.Tensor, frames: torch.Tensor, pts: torch.T
 # ----------------------------------------------------------------------------- CMA
 
 
-def ego_projection(cam_to_world: torch.Tensor, intrinsics: torch.Tensor, ei: torch.Tensor,
-                   ej: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def ego_projection(rotations: torch.Tensor, translations: torch.Tensor, intrinsics: torch.Tensor,
+                   ei: torch.Tensor, ej: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per edge i->j the map of camera-i points to homogeneous pixels of view j: (M (e,3,3),
-    c (e,3)) with [u z, v z, z] = M x + c, M = K_j R_ij, c = K_j t_ij, [R_ij | t_ij] camera i -> j.
-    cam_to_world (T,4,4), intrinsics (T,3,3), ei, ej (e,)."""
-    rel = torch.linalg.solve(cam_to_world[ej], cam_to_world[ei])  # (e,4,4) camera i -> camera j
-    k_j = intrinsics[ej]
-    return k_j @ rel[:, :3, :3], (k_j @ rel[:, :3, 3:])[..., 0]
+    c (e,3)) with [u z, v z, z] = M x + c, M = K_j R_j^T R_i, c = K_j R_j^T (T_i - T_j).
+    Camera-to-world rotations (T,3,3) and translations (T,3), intrinsics (T,3,3), ei, ej (e,)."""
+    to_j = rotations[ej].transpose(1, 2)  # (e,3,3) world -> camera j
+    k_to_j = intrinsics[ej] @ to_j
+    return k_to_j @ rotations[ei], (k_to_j @ (translations[ei] - translations[ej])[..., None])[..., 0]
 
 
 class _CameraMotion(torch.autograd.Function):
@@ -295,7 +295,8 @@ def objective(name: str, weight: str, stage: int, inputs: tuple[str, ...] = (), 
 
 # `state` is the loop's `c4d_pipeline.optimize.StageState`: `state.params` (SceneParams),
 # `state.data` (the observations, channels-first), `state.shared(name)` (per-iteration per-frame /
-# per-edge tensors whose gradients the edge chunks accumulate), `state.cma_max_px`,
+# per-edge tensors whose gradients the edge chunks accumulate; `state.shared_value(name)`: the same
+# attached to the parameters' graph), `state.cma_max_px`,
 # `state.cma_px_scale` and `state.pts_targets` (stage 2).
 
 
@@ -321,7 +322,7 @@ def _cma_term(state, edges: slice) -> torch.Tensor:
 
 @objective("cts", weight="cts", stage=1)
 def _cts_term(state) -> torch.Tensor:
-    return camera_smoothness(state.params.rotations(), state.params.trans)
+    return camera_smoothness(state.shared_value("rotations")[0], state.params.trans)
 
 
 @objective("pts", weight="pts", stage=2, inputs=("tracks",))

@@ -150,10 +150,14 @@ def _shared_cam(state):
     return (state.params.camera_points_channels_first(),)  # (T,3,P)
 
 
+def _shared_rotations(state):
+    return (state.params.rotations(),)  # (T,3,3) camera-to-world, shared by the terms of an iteration
+
+
 def _shared_world(state):
     (cam,) = state.shared_value("cam")
-    params = state.params
-    return (torch.baddbmm(params.trans[..., None], params.rotations(), cam),)  # (T,3,P)
+    (rot,) = state.shared_value("rotations")
+    return (torch.baddbmm(state.params.trans[..., None], rot, cam),)  # (T,3,P)
 
 
 def _shared_edge_similarity(state):
@@ -163,10 +167,11 @@ def _shared_edge_similarity(state):
 
 def _shared_ego_projection(state):
     params, data = state.params, state.data
-    return objectives.ego_projection(params.cam_to_world(), params.intrinsics(), data.ei, data.ej)
+    (rot,) = state.shared_value("rotations")
+    return objectives.ego_projection(rot, params.trans, params.intrinsics(), data.ei, data.ej)
 
 
-_SHARED = {"cam": _shared_cam, "world": _shared_world, "edge_similarity": _shared_edge_similarity,
+_SHARED = {"cam": _shared_cam, "rotations": _shared_rotations, "world": _shared_world, "edge_similarity": _shared_edge_similarity,
            "ego_projection": _shared_ego_projection}
 
 

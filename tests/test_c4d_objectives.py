@@ -98,7 +98,7 @@ def test_camera_motion_alignment_zero_for_ego_flow_and_l1_otherwise():
     v, u = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     pixels = torch.stack([u, v]).reshape(1, 2, -1).double()  # (1,2,P)
     ei, ej = torch.tensor([0]), torch.tensor([1])
-    mat, offset = obj.ego_projection(poses, k, ei, ej)
+    mat, offset = obj.ego_projection(poses[:, :3, :3], poses[:, :3, 3], k, ei, ej)
     flow = torch.zeros(1, 2, h * w, dtype=torch.float64)
     flow[:, 0] = -1.0
     static = torch.ones(1, h * w, dtype=torch.bool)
