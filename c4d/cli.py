@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "run": ("c4d_pipeline.cli_run", "reconstruct a monocular video with C4D (depth, poses, masks, 3D tracks)"),
     "eval-recon": ("c4d_pipeline.cli_eval_recon", "score a reconstruction against ground truth"),
     "demo": ("c4d.demo", "the whole chain on a small generated dataset, in minutes on a CPU"),
+    "config": ("c4d.cli_config", "print a preset's fully resolved config: config show GROUP/PRESET [key=value ...]"),
 }
 
 log = logging.getLogger("c4d")

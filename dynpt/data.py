@@ -4,7 +4,8 @@ Per scene: choose a clip (T frames at a random stride), augment it (dynpt.augmen
 N tracks that are visible at their query frame -- at their first visible frame, or (for a
 `random_query_fraction` of them) at a random visible frame. A sample is a dict of numpy arrays:
 `video` uint8 (T,H,W,3), `queries` float32 (N,3) as (t, x, y), `tracks` float32 (T,N,2),
-`visible` bool (T,N), `moving` bool (T,N), and `position` int64 (the stream state after it).
+`visible` bool (T,N), `moving` bool (T,N), and, from `ShardStream`, `key` (the scene's shard
+key, e.g. `train-00000042`) and `position` int64 (the stream state after it).
 
 `ShardStream` streams one or more shard sets mixed with weights. Every DDP rank and DataLoader
 worker reads its own slice ("split") of the shards (or of the samples, when there are fewer
@@ -29,6 +30,7 @@ from c4d_core.errors import UserError
 from datagen.scene import Scene
 from datagen.shards import decode_scene, iter_samples, list_shards
 from dynpt.augment import augment_clip
+from dynpt.device import pin_memory
 
 log = logging.getLogger(__name__)
 
@@ -194,11 +196,13 @@ class ShardStream(IterableDataset):
         while True:
             n = state[0]
             source = int(_rng(self.seed, split, n, 0).choice(len(self.probs), p=self.probs))
-            scene = decode_scene(next(streams[source]), TRAIN_FIELDS)
+            raw = next(streams[source])
+            scene = decode_scene(raw, TRAIN_FIELDS)
             state[0] = n + 1
             sample = make_training_sample(scene, self.cfg, _rng(self.seed, split, n, 1))
             if sample is not None:
-                yield {**sample, "position": np.array([split, num_splits] + state, np.int64)}
+                yield {**sample, "key": raw["__key__"],
+                       "position": np.array([split, num_splits] + state, np.int64)}
 
 
 def _init_worker(worker_id: int) -> None:
@@ -207,10 +211,12 @@ def _init_worker(worker_id: int) -> None:
     torch.set_num_threads(1)
 
 
-def make_loader(stream: ShardStream, batch_size: int, num_workers: int) -> DataLoader:
-    """A DataLoader over `stream`: batches come from workers in turn, so the order is fixed."""
+def make_loader(stream: ShardStream, batch_size: int, num_workers: int,
+                device_type: str = "cpu") -> DataLoader:
+    """A DataLoader over `stream` for batches going to `device_type` (pinned memory on a GPU):
+    batches come from workers in turn, so the order is fixed."""
     return DataLoader(stream, batch_size=batch_size, num_workers=num_workers,
-                      persistent_workers=num_workers > 0, pin_memory=torch.cuda.is_available(),
+                      persistent_workers=num_workers > 0, pin_memory=pin_memory(device_type),
                       prefetch_factor=2 if num_workers > 0 else None,
                       worker_init_fn=_init_worker if num_workers > 0 else None)
 

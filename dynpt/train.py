@@ -12,6 +12,7 @@ scheduler, step, RNG states and the data-stream position, so `--resume` continue
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -31,11 +32,15 @@ from c4d_core.config import to_dict
 from c4d_core.errors import UserError
 from dynpt.checkpoint import load_checkpoint, save_checkpoint
 from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
+from dynpt.device import (apply_cudnn_flags, autocast, bf16_supported, cudnn_flags, ddp_backend,
+                          ddp_device_ids, peak_memory, reset_peak_memory, training_autocast_dtype, training_device)
 from dynpt.evaluate import evaluate_model, load_eval_scenes, track_image
 from dynpt.losses import LossWeights, dynpt_loss
 from dynpt.model import build_model
 
 log = logging.getLogger(__name__)
+
+DEBUG_DUMP_ENV = "DYNPT_DEBUG_DUMP"  # a folder: per-step weight digests of every rank (debugging)
 
 
 # --- process set-up -----------------------------------------------------------------------------
@@ -45,12 +50,12 @@ def init_distributed() -> tuple[int, int, torch.device]:
     """(rank, world_size, device) from torchrun's environment; a single process without it."""
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    cuda = torch.cuda.is_available()
-    device = torch.device(f"cuda:{local_rank}" if cuda else "cpu")
-    if cuda:
+    device = training_device(torch.cuda.is_available(), local_rank)
+    if device.type == "cuda":
         torch.cuda.set_device(device)
+        apply_cudnn_flags(cudnn_flags(device.type))
     if world_size > 1 and not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if cuda else "gloo")
+        dist.init_process_group(backend=ddp_backend(device.type))
     return (dist.get_rank() if world_size > 1 else 0), world_size, device
 
 
@@ -63,6 +68,22 @@ def accumulation_steps(total_batch: int, batch_size: int, world_size: int) -> in
             f"x {world_size} processes; choose total_batch as a multiple of {per_pass}"
         )
     return total_batch // per_pass
+
+
+def check_schedule(tc, world_size: int) -> int:
+    """Accumulation steps of the `train` section on `world_size` processes, or a UserError.
+
+    Under torchrun every process finds the same mistake: only rank 0 says it (one line), the
+    others exit with the same status and no message.
+    """
+    try:
+        if tc.steps < 3:
+            raise UserError(f"train.steps={tc.steps}: the OneCycle schedule needs at least 3 steps")
+        return accumulation_steps(tc.total_batch, tc.batch_size, world_size)
+    except UserError:
+        if int(os.environ.get("RANK", "0")) > 0:
+            raise SystemExit(2) from None
+        raise
 
 
 def rng_state() -> dict:
@@ -112,17 +133,17 @@ class Trainer:
     def __init__(self, cfg, resume: bool = False):
         self.cfg = cfg
         tc = cfg.train
+        self.accum = check_schedule(tc, int(os.environ.get("WORLD_SIZE", "1")))
         self.rank, self.world_size, self.device = init_distributed()
         self.main = self.rank == 0
         self.out_dir = Path(tc.out_dir)
-        self.accum = accumulation_steps(tc.total_batch, tc.batch_size, self.world_size)
-        if tc.steps < 3:
-            raise UserError(f"train.steps={tc.steps}: the OneCycle schedule needs at least 3 steps")
         random.seed(cfg.seed + self.rank)
         np.random.seed(cfg.seed + self.rank)
         torch.manual_seed(cfg.seed + self.rank)
 
         self.model = build_model(cfg.model).to(self.device)
+        self.amp_dtype = training_autocast_dtype(self.device.type, tc.bf16,
+                                                 bf16_supported(self.device))
         params = [p for p in self.model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay,
                                            eps=tc.adam_eps)
@@ -140,14 +161,13 @@ class Trainer:
         elif latest_checkpoint(self.out_dir) is not None:
             raise UserError(f"{self.out_dir} already holds checkpoints; add --resume to continue "
                             "that run, or set train.out_dir=... to a new folder")
-        self.ddp = (DistributedDataParallel(self.model, device_ids=[self.device.index]
-                                            if self.device.type == "cuda" else None)
+        self.ddp = (DistributedDataParallel(self.model, device_ids=ddp_device_ids(self.device))
                     if self.world_size > 1 else self.model)
         sources = list(cfg.data.sources)
         weights = list(cfg.data.weights) or [1.0] * len(sources)
         stream = ShardStream(sources, weights, cfg.data, cfg.seed,
                              self.rank, self.world_size, start_positions)
-        self.loader = make_loader(stream, tc.batch_size, cfg.data.num_workers)
+        self.loader = make_loader(stream, tc.batch_size, cfg.data.num_workers, self.device.type)
         self.position = StreamPosition()
         self.val_scenes = (load_eval_scenes(cfg.eval.source, cfg.eval)
                            if self.main and cfg.eval.source else [])
@@ -211,17 +231,17 @@ class Trainer:
     # -- one step --
 
     def _autocast(self):
-        if self.device.type == "cuda" and self.cfg.train.bf16:
-            return torch.autocast("cuda", dtype=torch.bfloat16)
-        return nullcontext()
+        return autocast(self.device.type, self.amp_dtype)
 
     def train_step(self, batches) -> dict[str, float]:
         """One optimiser step over `accum` micro-batches; returns the mean weighted loss terms."""
         self.ddp.train()
         totals: dict[str, float] = {}
+        scenes: list[str] = []
         for i in range(self.accum):
             batch = next(batches)
             self.position.update(batch["position"])
+            scenes += batch.get("key", [])
             video = batch["video"].to(self.device, non_blocking=True).permute(0, 1, 4, 2, 3).float()
             queries = batch["queries"].to(self.device)  # (B,N,3)
             target = {
@@ -243,7 +263,20 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         self.step += 1
         totals["grad_norm"] = float(grad_norm)
+        if DEBUG_DUMP_ENV in os.environ:
+            self._debug_dump(Path(os.environ[DEBUG_DUMP_ENV]), scenes)
         return totals
+
+    def _debug_dump(self, folder: Path, scenes: list[str]) -> None:
+        """Append {step, weights (SHA-256 of every tensor's bytes), scenes read} to
+        folder/rank_R.jsonl: `DYNPT_DEBUG_DUMP=DIR` lets tests/test_ddp.py compare the ranks."""
+        digest = hashlib.sha256()
+        for tensor in self.model.state_dict().values():
+            digest.update(tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy())
+        folder.mkdir(parents=True, exist_ok=True)
+        with open(folder / f"rank_{self.rank}.jsonl", "a") as f:
+            f.write(json.dumps({"step": self.step, "weights": digest.hexdigest(),
+                                "scenes": scenes}) + "\n")
 
     # -- validation --
 
@@ -279,8 +312,7 @@ class Trainer:
         log_path = self.out_dir / "log.jsonl"
         summary: dict = {}
         window_start, window_clips = time.perf_counter(), 0
-        if self.device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(self.device)
+        reset_peak_memory(self.device)
         while self.step < stop:
             terms = self.train_step(batches)
             window_clips += tc.total_batch
@@ -295,10 +327,8 @@ class Trainer:
                                            value, self.step)
                 self.writer.add_scalar("train/lr", lr, self.step)
                 self.writer.add_scalar("train/clips_per_s", window_clips / elapsed, self.step)
-                if self.device.type == "cuda":
-                    self.writer.add_scalar("train/gpu_mem_gib",
-                                           torch.cuda.max_memory_allocated(self.device) / 2**30,
-                                           self.step)
+                if (peak := peak_memory(self.device)) is not None:
+                    self.writer.add_scalar("train/gpu_mem_gib", peak / 2**30, self.step)
                 log.info("step %d/%d  loss %.4f  lr %.2e  %.2f clips/s", self.step, tc.steps,
                          terms["total"], lr, window_clips / elapsed)
                 window_start, window_clips = time.perf_counter(), 0
