@@ -181,7 +181,10 @@ def test_result_equals_the_autograd_optimiser_within_rounding_drift():
 
 
 def test_a_registered_objective_is_one_function_and_one_weight_key(case, monkeypatch, tmp_path):
-    from c4d_core.config import CONFIG_DIR
+    import shutil
+
+    from c4d_core import config as config_module
+    from c4d_core import schema
     from c4d_pipeline import objectives
 
     scene, edges, flows = case
@@ -196,10 +199,17 @@ def test_a_registered_objective_is_one_function_and_one_weight_key(case, monkeyp
     objectives.objective("prior", weight="prior", stage=1)(depth_prior)
     with pytest.raises(UserError, match="weights.prior"):
         opt.optimise(pw, T, tiny_cfg("optim.stage1_iters=2", "optim.stage2_iters=0"))
-    preset = tmp_path / "prior.yaml"  # the one YAML key
-    preset.write_text(f"_base_: {CONFIG_DIR / 'c4d' / 'tiny.yaml'}\ngraph:\n  window: 3\nweights:\n  prior: 0.5\n")
-    cfg = lambda *o: load_config("c4d", preset, overrides=["optim.stage1_iters=3", "optim.stage2_iters=0", *o])  # noqa: E731
-    res = opt.optimise(pw, T, cfg())
-    assert len(calls) == 3 and len(res.history["losses"]["stage1"]["prior"]) == 3
-    opt.optimise(pw, T, cfg("weights.prior=0"))
-    assert len(calls) == 3  # weight 0: not evaluated
+    # the one YAML key (in the root preset) and its range rule
+    shutil.copytree(config_module.config_dir() / "c4d", tmp_path / "c4d")
+    root = tmp_path / "c4d" / "default.yaml"
+    root.write_text(root.read_text().replace("weights:\n", "weights:\n  prior: 0.5\n", 1))
+    monkeypatch.setattr(config_module, "config_dir", lambda: tmp_path)
+    monkeypatch.setitem(schema.RULES, "c4d", {**schema.RULES["c4d"], "weights.prior": schema.number(0.0)})
+    config_module._root.cache_clear()
+    try:
+        res = opt.optimise(pw, T, tiny_cfg("optim.stage1_iters=3", "optim.stage2_iters=0"))
+        assert len(calls) == 3 and len(res.history["losses"]["stage1"]["prior"]) == 3
+        opt.optimise(pw, T, tiny_cfg("optim.stage1_iters=3", "optim.stage2_iters=0", "weights.prior=0"))
+        assert len(calls) == 3  # weight 0: not evaluated
+    finally:
+        config_module._root.cache_clear()
