@@ -98,6 +98,13 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"c4d: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a write no command turned into a UserError: still one line
+        from c4d_core.files import DISK_ERRNOS, disk_error
+
+        if exc.errno not in DISK_ERRNOS or verbose:
+            raise
+        print(f"c4d: error: {disk_error(exc.filename or '?', exc)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("c4d: interrupted", file=sys.stderr)
         return 130

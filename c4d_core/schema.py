@@ -245,6 +245,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "data.max_stride": COUNT, "data.crop_size": size(), "data.num_tracks": COUNT,
         "data.random_query_fraction": fraction(), "data.moving_track_fraction": fraction(),
         "data.max_offscreen_px": PIXELS, "data.shuffle_buffer": COUNT, "data.num_workers": POSITIVE,
+        "data.max_bad_fraction": fraction(),
         "data.augment.scale_range": interval(above=0), "data.augment.hflip_prob": fraction(),
         "data.augment.vflip_prob": fraction(), "data.augment.jitter_prob": fraction(),
         "data.augment.brightness": number(0.0), "data.augment.contrast": number(0.0),

@@ -159,9 +159,21 @@ def claim_directory(out: Path, record: dict[str, Any], plan: ShardPlan) -> None:
 _worker: dict[str, Any] = {}
 
 
-def _init_worker(cfg) -> None:
-    """Worker initializer: keep the config; the assets load with the first scene."""
+def _exit_with_parent(parent: int) -> None:
+    """Watch (in a daemon thread) for the parent process to die, then end this worker at once:
+    an orphaned worker would otherwise sit idle holding its memory (and the resource tracker)."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
+
+
+def _init_worker(cfg, parent: int) -> None:
+    """Worker initializer: keep the config (the assets load with the first scene); exit when the
+    parent `parent` dies."""
+    import threading
+
     _worker["cfg"] = cfg
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
 
 
 def _make_sample(cfg, scene_index: int, assets) -> dict[str, Any]:
@@ -198,7 +210,7 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
         return
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
-                             initargs=(cfg,)) as pool:
+                             initargs=(cfg, os.getpid())) as pool:
         todo = iter(indices)
         pending = deque(pool.submit(_worker_sample, i) for i in islice(todo, 2 * workers))
         try:
@@ -228,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
     require_egl()
     from datagen.assets import load_asset_library
 
-    load_asset_library(cfg)  # cheap; fails early on an unreadable assets or backgrounds folder
+    load_asset_library(cfg).check_backgrounds()  # fails early on unreadable folders and images
     claim_directory(args.out, dataset_record(cfg, plan, str(args.preset)), plan)
 
     shards = plan.shards_of_task(task_index, num_tasks)
@@ -257,6 +269,12 @@ def run(args: argparse.Namespace) -> int:
                         assert sample["__key__"] == scene_key(plan.split, index), "out of order"
                         writer.write(sample)
                         bar.update()
+    except KeyboardInterrupt:
+        if workers > 1:
+            log.warning("interrupted: waiting for the %d worker(s) to finish the scene each is "
+                        "rendering; the shards already written are kept and rerunning the same "
+                        "command continues", workers)
+        raise
     finally:
         samples.close()  # on an error or Ctrl-C: cancel queued scenes, shut the workers down
     seconds = time.perf_counter() - start

@@ -14,6 +14,11 @@ buffer, all seeded by (seed, source, epoch, split). Per sample, the source choic
 augmentation are seeded by (seed, split, sample counter). So the stream is a pure function of
 the seed and the position; `position` lets `--resume` continue exactly: the worker re-reads (but
 does not decode) the samples already taken from the current epoch of each source.
+
+Bad data (webdataset's warn-and-continue): a corrupt or incomplete sample, or the unreadable rest
+of a truncated shard, is skipped with a warning naming shard and sample and counted; every sample
+carries `counts` int64 [read, bad] of its loader split. A split stops with a `UserError` once
+more than `data.max_bad_fraction` of its samples are bad (counted from 100 samples on).
 """
 
 from __future__ import annotations
@@ -35,6 +40,12 @@ from dynpt.device import pin_memory
 log = logging.getLogger(__name__)
 
 TRAIN_FIELDS = ("rgb", "tracks", "occluded", "moving", "query_frame")
+MIN_COUNTED = 100  # the bad-sample limit is a fraction of at least this many samples
+
+
+def too_many_bad(bad: int, read: int, max_fraction: float) -> bool:
+    """True once `bad` of `read` samples exceed the allowed fraction (of at least MIN_COUNTED)."""
+    return bad > max_fraction * max(read, MIN_COUNTED)
 
 
 # --- one sample ---------------------------------------------------------------------------------
@@ -160,13 +171,16 @@ class ShardStream(IterableDataset):
         rng = _rng(self.seed, source, epoch, split, 1)
         index = 0
         for shard_id in mine:
-            for sample in iter_samples(shards[shard_id], TRAIN_FIELDS):
-                index += 1
-                if not by_shard and (index - 1) % num_splits != split:
-                    continue
-                buffer.append(sample)
-                if len(buffer) >= self.cfg.shuffle_buffer:
-                    yield buffer.pop(int(rng.integers(len(buffer))))
+            try:
+                for sample in iter_samples(shards[shard_id], TRAIN_FIELDS):
+                    index += 1
+                    if not by_shard and (index - 1) % num_splits != split:
+                        continue
+                    buffer.append(sample)
+                    if len(buffer) >= self.cfg.shuffle_buffer:
+                        yield buffer.pop(int(rng.integers(len(buffer))))
+            except UserError as exc:  # a truncated or damaged tar: its rest is lost
+                self._bad(exc)
         while buffer:
             yield buffer.pop(int(rng.integers(len(buffer))))
 
@@ -185,7 +199,19 @@ class ShardStream(IterableDataset):
                                 f"{num_splits}; use fewer workers/GPUs or more scenes")
             epoch, taken = epoch + 1, 0
 
+    def _bad(self, exc: UserError) -> None:
+        """Count and report one bad sample (or unreadable shard rest); stop past the limit."""
+        read, bad = self._counts[0], self._counts[1] + 1
+        self._counts[1] = bad
+        log.warning("skipping bad training data (%d bad of %d samples read): %s", bad, read, exc)
+        if too_many_bad(bad, read, float(self.cfg.max_bad_fraction)):
+            raise UserError(
+                f"{bad} of {read} training samples are bad, more than data.max_bad_fraction="
+                f"{self.cfg.max_bad_fraction}; last: {exc} (check the data with `c4d inspect "
+                "SOURCE --check`, or raise data.max_bad_fraction)")
+
     def __iter__(self) -> Iterator[dict]:
+        self._counts = [0, 0]  # [read, bad] of this split, since this iterator started
         info = get_worker_info()
         worker, num_workers = (info.id, info.num_workers) if info else (0, 1)
         num_splits = self.world_size * num_workers
@@ -197,12 +223,21 @@ class ShardStream(IterableDataset):
             n = state[0]
             source = int(_rng(self.seed, split, n, 0).choice(len(self.probs), p=self.probs))
             raw = next(streams[source])
-            scene = decode_scene(raw, TRAIN_FIELDS)
             state[0] = n + 1
-            sample = make_training_sample(scene, self.cfg, _rng(self.seed, split, n, 1))
+            self._counts[0] += 1
+            try:
+                scene = decode_scene(raw, TRAIN_FIELDS)
+            except UserError as exc:
+                self._bad(exc)
+                continue
+            try:
+                sample = make_training_sample(scene, self.cfg, _rng(self.seed, split, n, 1))
+            except UserError as exc:
+                raise UserError(f"sample {raw['__key__']} of {raw['__url__']}: {exc}") from exc
             if sample is not None:
                 yield {**sample, "key": raw["__key__"],
-                       "position": np.array([split, num_splits] + state, np.int64)}
+                       "position": np.array([split, num_splits] + state, np.int64),
+                       "counts": np.array(self._counts, np.int64)}
 
 
 def _init_worker(worker_id: int) -> None:

@@ -23,6 +23,9 @@ from dynpt.model import DynPT
 from dynpt.query_sampling import sample_queries
 
 
+MIN_SIDE = 17  # px at the network's resolution: the CNN's 1/16 features need more than one cell
+
+
 @dataclass
 class TrackResult:
     """Tracker output (numpy, T frames, N tracks): tracks float32 (T,N,2) (x, y) input pixels;
@@ -154,6 +157,10 @@ class Tracker:
         queries = _check_queries(queries, T, H, W)
         cfg = self.model.config
         h, w = cfg["resolution"] or (H, W)
+        if min(h, w) < MIN_SIDE:
+            raise UserError(f"video frames of {W}x{H} pixels are too small: the tracker needs at "
+                            f"least {MIN_SIDE}x{MIN_SIDE} (its coarsest features are 1/16 of the "
+                            "frame); upscale the video first")
         sx, sy = w / W, h / H
         scaled = queries.copy()
         scaled[:, 1] = (queries[:, 1] + 0.5) * sx - 0.5

@@ -8,6 +8,9 @@ Files in `train.out_dir`: `config.yaml`, `checkpoints/step_XXXXXXXX.pt` (the las
 `keep_last`), `checkpoints/best.pt` (best validation `eval.best_metric`), `log.jsonl` (one line
 per step: losses, learning rate), `tb/` (TensorBoard). A checkpoint holds the model, optimiser,
 scheduler, step, RNG states and the data-stream position, so `--resume` continues the same run.
+`--resume` starts from the newest readable step checkpoint (a damaged newest one is skipped with
+a warning), drops log lines past its step (and a torn last line), and rebuilds the OneCycle
+annealing to end at a changed `train.steps` (docs/TRAINING.md).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import logging
 import math
 import os
 import random
+import threading
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -30,7 +34,8 @@ from torch.nn.parallel import DistributedDataParallel
 
 from c4d_core.config import to_dict
 from c4d_core.errors import UserError
-from dynpt.checkpoint import load_checkpoint, save_checkpoint
+from c4d_core.files import DISK_ERRNOS, append_line, disk_error, write_text
+from dynpt.checkpoint import CheckpointUnreadable, load_checkpoint, save_checkpoint
 from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
 from dynpt.device import (apply_cudnn_flags, autocast, bf16_supported, cudnn_flags, ddp_backend,
                           ddp_device_ids, peak_memory, reset_peak_memory, training_autocast_dtype, training_device)
@@ -118,6 +123,51 @@ def latest_checkpoint(out_dir: str | Path) -> Path | None:
     return found[-1] if found else None
 
 
+def load_latest_checkpoint(out_dir: str | Path, model_cfg) -> tuple[Path, dict]:
+    """(path, checkpoint) of the newest readable step checkpoint; an unreadable newer one (cut
+    by a crash or a full disk) is skipped with a warning. `UserError` if none is readable."""
+    found = sorted(checkpoint_dir(out_dir).glob("step_*.pt"), reverse=True)
+    if not found:
+        raise UserError(f"--resume: no checkpoint in {checkpoint_dir(out_dir)}; start "
+                        "without --resume, or set train.out_dir to the run to continue")
+    for path in found:
+        try:
+            return path, load_checkpoint(path, model_cfg)
+        except CheckpointUnreadable as exc:
+            log.warning("warning: skipping %s: %s", path.name, exc)
+    raise UserError(f"--resume: no readable checkpoint in {checkpoint_dir(out_dir)} (see the "
+                    "warnings above); start a new run in another train.out_dir")
+
+
+def rebuild_annealing(scheduler, total_steps: int) -> None:
+    """Make a OneCycleLR end at `total_steps` instead of its stored total (a resume with another
+    `train.steps`): the warm-up is kept, the annealing phase ends at the new last step."""
+    scheduler.total_steps = total_steps
+    scheduler._schedule_phases[-1]["end_step"] = float(total_steps - 1)
+    scheduler.last_epoch -= 1
+    scheduler.step()  # the optimiser's rate for the next step, now on the new schedule
+
+
+def _quiet_disk_errors(args) -> None:
+    """`threading.excepthook` while training: a disk error in TensorBoard's writer thread prints
+    no traceback (the training thread meets it too and reports it as one line)."""
+    if not (isinstance(args.exc_value, OSError) and args.exc_value.errno in DISK_ERRNOS):
+        threading.__excepthook__(args)
+
+
+def next_batch(batches):
+    """`next(batches)`, with a loader worker's `UserError` as its own one-line message (the
+    DataLoader wraps it in "Caught UserError in DataLoader worker ..." and the traceback)."""
+    try:
+        return next(batches)
+    except UserError as exc:
+        text = str(exc)
+        if not text.startswith("Caught UserError"):
+            raise
+        last = text.rstrip().splitlines()[-1]
+        raise UserError(last.split("UserError: ", 1)[-1]) from None
+
+
 def prune_checkpoints(out_dir: str | Path, keep_last: int) -> None:
     """Delete all but the newest `keep_last` step checkpoints (best.pt is never touched)."""
     for old in sorted(checkpoint_dir(out_dir).glob("step_*.pt"))[:-keep_last]:
@@ -155,12 +205,15 @@ class Trainer:
             final_div_factor=tc.final_div_factor)
         self.loss_weights = LossWeights.from_config(cfg.loss)
         self.step, self.best = 0, None
+        self.data_counts: dict[int, tuple[int, int]] = {}  # loader split -> (read, bad)
         start_positions: dict = {}
         if resume:
             start_positions = self._resume()
         elif latest_checkpoint(self.out_dir) is not None:
             raise UserError(f"{self.out_dir} already holds checkpoints; add --resume to continue "
                             "that run, or set train.out_dir=... to a new folder")
+        elif self.main:
+            self._truncate_log(0)  # lines of a run that crashed before its first checkpoint
         self.ddp = (DistributedDataParallel(self.model, device_ids=ddp_device_ids(self.device))
                     if self.world_size > 1 else self.model)
         sources = list(cfg.data.sources)
@@ -175,22 +228,28 @@ class Trainer:
         if self.main:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            (self.out_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-            self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=self.step + 1)
+            write_text(self.out_dir / "config.yaml", OmegaConf.to_yaml(cfg))
+            try:
+                self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=self.step + 1)
+            except OSError as exc:
+                raise disk_error(self.out_dir / "tb", exc) from exc
 
     # -- resume --
 
     def _resume(self) -> dict:
-        path = latest_checkpoint(self.out_dir)
-        if path is None:
-            raise UserError(f"--resume: no checkpoint in {checkpoint_dir(self.out_dir)}; start "
-                            "without --resume, or set train.out_dir to the run to continue")
-        ckpt = load_checkpoint(path, self.cfg.model)
+        path, ckpt = load_latest_checkpoint(self.out_dir, self.cfg.model)
         extra = ckpt["extra"]
         self.model.load_state_dict(ckpt["model"])
         self.optimizer.load_state_dict(extra["optimizer"])
         self.scheduler.load_state_dict(extra["scheduler"])
+        if self.scheduler.total_steps != self.cfg.train.steps:
+            if self.cfg.train.steps <= int(ckpt["step"]):
+                raise UserError(f"--resume: the run is at step {ckpt['step']}, so train.steps="
+                                f"{self.cfg.train.steps} has nothing left to do; set it higher")
+            log.info("train.steps changed from %d to %d: the learning-rate annealing now ends at "
+                     "step %d", self.scheduler.total_steps, self.cfg.train.steps,
+                     self.cfg.train.steps)
+            rebuild_annealing(self.scheduler, self.cfg.train.steps)
         self.step, self.best = int(ckpt["step"]), extra.get("best")
         set_rng_state(extra["rng"][min(self.rank, len(extra["rng"]) - 1)])
         log.info("resumed %s at step %d", path, self.step)
@@ -200,11 +259,26 @@ class Trainer:
         return merge_positions(extra["data"], num_splits)
 
     def _truncate_log(self, step: int) -> None:
-        """Drop log lines after `step` (written after the checkpoint, before a crash)."""
+        """Drop log lines after `step` (written after the checkpoint, before a crash) and a torn
+        last line (a crash or a full disk inside the append); rewritten atomically."""
         log_path = self.out_dir / "log.jsonl"
-        if log_path.exists():
-            lines = [l for l in log_path.read_text().splitlines() if json.loads(l)["step"] <= step]
-            log_path.write_text("".join(l + "\n" for l in lines))
+        if not log_path.exists():
+            return
+        text = log_path.read_text(errors="replace")
+        lines, kept = text.splitlines(), []
+        for number, line in enumerate(lines, 1):
+            try:
+                record = json.loads(line)
+            except ValueError:
+                if number < len(lines):
+                    raise UserError(f"{log_path} line {number} is not JSON (edited by hand?); "
+                                    "fix or delete that line, then resume") from None
+                log.warning("warning: dropping the torn last line of %s", log_path)
+                continue
+            if record["step"] <= step:
+                kept.append(line)
+        if len(kept) != len(lines) or (text and not text.endswith("\n")):
+            write_text(log_path, "".join(line + "\n" for line in kept))
 
     # -- checkpoints --
 
@@ -239,8 +313,10 @@ class Trainer:
         totals: dict[str, float] = {}
         scenes: list[str] = []
         for i in range(self.accum):
-            batch = next(batches)
+            batch = next_batch(batches)
             self.position.update(batch["position"])
+            for split, counts in zip(batch["position"][:, 0].tolist(), batch["counts"].tolist()):
+                self.data_counts[split] = tuple(counts)
             scenes += batch.get("key", [])
             video = batch["video"].to(self.device, non_blocking=True).permute(0, 1, 4, 2, 3).float()
             queries = batch["queries"].to(self.device)  # (B,N,3)
@@ -318,8 +394,7 @@ class Trainer:
             window_clips += tc.total_batch
             lr = terms.pop("lr")
             if self.main:
-                with open(log_path, "a") as f:
-                    f.write(json.dumps({"step": self.step, "lr": lr, **terms}) + "\n")
+                append_line(log_path, json.dumps({"step": self.step, "lr": lr, **terms}))
             if self.main and (self.step % tc.log_every == 0 or self.step == stop):
                 elapsed = time.perf_counter() - window_start
                 for key, value in terms.items():
@@ -346,6 +421,10 @@ class Trainer:
                 self.save(summary)
         if self.writer is not None:
             self.writer.flush()
+        read, bad = (sum(c[i] for c in self.data_counts.values()) for i in (0, 1))
+        if bad:
+            log.warning("warning: skipped %d bad training samples of %d read (see the warnings "
+                        "above; `c4d inspect SOURCE --check` lists them)", bad, read)
         return summary
 
     def close(self) -> None:
@@ -361,7 +440,15 @@ def train(cfg, resume: bool = False) -> dict:
         raise UserError("no training data: set data.sources=[DIR_OR_GLOB,...] (and data.weights) "
                         "to shard sets made with `c4d datagen`")
     trainer = Trainer(cfg, resume=resume)
+    hook, threading.excepthook = threading.excepthook, _quiet_disk_errors
     try:
-        return trainer.fit()
+        try:
+            return trainer.fit()
+        finally:
+            trainer.close()
+    except OSError as exc:  # TensorBoard's event file on a full disk (its own thread writes it)
+        if exc.errno not in DISK_ERRNOS:
+            raise
+        raise disk_error(exc.filename or trainer.out_dir / "tb", exc) from exc
     finally:
-        trainer.close()
+        threading.excepthook = hook
