@@ -67,7 +67,7 @@ def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -
 
 # keys that only steer inference or name a file: they may differ without changing the weights
 _NON_ARCHITECTURE = {"window_stride", "train_iters", "eval_iters", "resolution", "visibility_threshold",
-                     "checkpoint", "require_checkpoint", "random_init"}
+                     "checkpoint", "require_checkpoint", "random_init", "init_from"}
 
 
 def _differences(stored, wanted, prefix: str = "") -> list[str]:
@@ -84,7 +84,7 @@ def check_config(stored: Mapping, model_cfg: Mapping, path: Path) -> None:
     if wanted["encoder_3d"].get("checkpoint"):  # sizes come from that file, as recorded in `stored`
         sizes = ("patch_size", "embed_dim", "depth", "num_heads", "mlp_ratio", "rope_freq")
         wanted["encoder_3d"].update({k: stored["encoder_3d"][k] for k in sizes})
-    diffs = _differences(stored, wanted)
+    diffs = _differences(plain_config(stored), wanted)
     if diffs:
         raise UserError(f"checkpoint {str(path)!r} was trained with another model config: "
                         f"{'; '.join(diffs[:5])}; use the checkpoint's own config or start a new run")
