@@ -14,12 +14,15 @@ from c4d.config import add_training_arguments, load_config
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_training_arguments(parser, "dynpt")
+    parser.add_argument("--init", metavar="cotracker3:PATH", default=None,
+                        help="start from CoTracker3's released weights (same as model.init_from=...)")
 
 
 def run(args: argparse.Namespace) -> int:
     from dynpt.train import train
 
-    cfg = load_config("dynpt", args.config, overrides=args.overrides)
+    init = [f"model.init_from={args.init}"] if args.init else []
+    cfg = load_config("dynpt", args.config, overrides=[*args.overrides, *init])
     train(cfg, resume=args.resume)
     return 0
 

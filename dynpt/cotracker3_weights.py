@@ -25,8 +25,10 @@ have a DynPT counterpart. The mapping table (`dynpt_key` renames, `map_state` tr
     time embedding is added to the token, so it gets the same column change. (3) inside blocks:
     `cross_attn.` -> `attn.`, `mlp.fc1.` -> `mlp.0.`, `mlp.fc2.` -> `mlp.2.`.
 
-DynPT tensors CoTracker3 lacks start fresh (`FRESH_PREFIXES`): the mobility head and, with the 3D
-encoder, the fusion layers (`vit_proj`, `fuse`; the encoder itself comes from its own file). The
+DynPT tensors CoTracker3 lacks start fresh (`FRESH_PREFIXES`): the mobility head (random, small)
+and, with the 3D encoder, the fusion layers: `vit_proj` random, `fuse` identity on the CNN
+features and zero on the 3D ones, so the first forward pass is still CoTracker3's (the encoder
+itself comes from its own file). The
 model must be built with `time_embedding: cotracker3` and CoTracker3's sizes (configs/dynpt/
 model/cotracker3.yaml); `sampling: cotracker3` and a CoTracker3 `windowing` reproduce its outputs.
 """
@@ -196,14 +198,35 @@ def config_from_state(state: Mapping[str, torch.Tensor], base: Mapping, windowin
     return cfg
 
 
-def load_into(model: torch.nn.Module, path: str | os.PathLike) -> list[str]:
-    """Load a CoTracker3 file into a DynPT `model` (in place); returns the tensors left fresh."""
-    state = read_state(path)
+def load_into(model: torch.nn.Module, path: str | os.PathLike, state: Mapping | None = None) -> list[str]:
+    """Load a CoTracker3 file (or its already read `state`) into a DynPT `model` (in place);
+    returns the names of the tensors left fresh."""
+    state = read_state(path) if state is None else state
     mapped, fresh = map_state(state, model.config, model.state_dict(), source=str(path))
     model.load_state_dict(mapped, strict=False)
+    fuse = getattr(model, "fuse", None)
+    if fuse is not None:  # identity on the CNN half, zero on the 3D half: the first pass is CoTracker3's
+        C = fuse.out_channels
+        with torch.no_grad():
+            fuse.weight.zero_()
+            fuse.weight[:, :C, 0, 0] = torch.eye(C)
+            fuse.bias.zero_()
     log.info("DynPT from CoTracker3 %s: %d tensors mapped; starting fresh: %s", path, len(mapped),
              ", ".join(fresh) or "none")
     return fresh
+
+
+def build_from_file(path: str | os.PathLike, windowing: str | None = None):
+    """A DynPT with the sizes and weights of a CoTracker3 file (mobility head fresh; see
+    `config_from_state` for `windowing`); the other model keys from model/cotracker3-offline.yaml."""
+    from c4d.config import load_config
+    from dynpt.model import build_model, plain_config
+
+    state = read_state(path)
+    base = plain_config(load_config("dynpt", "model/cotracker3-offline").model)
+    model = build_model(config_from_state(state, base, windowing))
+    load_into(model, path, state)
+    return model
 
 
 def parse_init(spec: str) -> Path:
