@@ -19,7 +19,9 @@ Usage:
   far beyond a 2-core CPU for the full model; the default is a reduced 8,128,128,64.
   `--models tiny,tiny-2x --clip 8,64,64,32` compares the demo's model with
   configs/dynpt/tiny-cpu-2x.yaml, which gets the clip at twice the height and width (it trains
-  on 2x crops of the same videos).
+  on 2x crops of the same videos). `--models ft-mobility,ft-mobility-fusion,ft-full` times the
+  fine-tuning recipes from CoTracker3's weights (the optimiser gets `train.lr_scale`'s groups:
+  frozen parts take no gradient).
 """
 
 from __future__ import annotations
@@ -46,6 +48,12 @@ MODELS = {  # name -> (preset, overrides, frame size factor: the clip's H and W 
     "cnn-only": ("paper-gpu-cnn-only", [], 1),
     "full": ("paper-gpu", ["model.encoder_3d.random_init=true",
                            "model.encoder_3d.require_checkpoint=false"], 1),
+    # the fine-tuning recipes from CoTracker3's weights (random weights here: the cost is the same)
+    "ft-mobility": ("finetune-mobility", [], 1),
+    "ft-mobility-fusion": ("finetune-mobility-fusion", ["model.encoder_3d.random_init=true",
+                                                        "model.encoder_3d.require_checkpoint=false"], 1),
+    "ft-full": ("finetune-full", ["model.encoder_3d.random_init=true",
+                                  "model.encoder_3d.require_checkpoint=false"], 1),
 }
 
 
@@ -110,11 +118,12 @@ def step_times(model: str, steps: int, clip: str) -> dict:
     """Seconds per train step and peak RSS on a (T,H,W,N) clip (a fresh process by `main`)."""
     from dynpt.losses import LossWeights, dynpt_loss
     from dynpt.model import build_model
+    from dynpt.train import param_groups
 
     preset, overrides, size_factor = MODELS[model]
     cfg = load_config("dynpt", preset, overrides=overrides)
     net = build_model(cfg.model).train()
-    opt = torch.optim.AdamW([p for p in net.parameters() if p.requires_grad], lr=1e-4)
+    opt = torch.optim.AdamW(param_groups(net, cfg.train.lr, cfg.train.lr_scale))  # train.lr_scale's groups
     T, H, W, N = (int(v) for v in clip.split(","))
     H, W, B = H * size_factor, W * size_factor, 1
     gen = torch.Generator().manual_seed(0)

@@ -160,3 +160,52 @@ def test_load_tracker_reads_a_cotracker3_file(golden, tmp_path):
     q = golden["queries"][0].numpy()[:3]
     res = tracker.track(video, q, support_grid=2)
     assert res.tracks.shape == (18, 3, 2) and np.isfinite(res.tracks).all()
+
+
+@pytest.mark.parametrize("preset,trained", [
+    ("finetune-mobility", {"mobility"}),
+    ("finetune-mobility-fusion", {"mobility", "fusion"}),
+    ("finetune-full", {"cnn", "correlation", "transformer", "mobility", "fusion"}),
+])
+def test_finetune_recipes_train_their_parts(preset, trained):
+    """Each recipe's parameter groups: the parts it trains, at lr x lr_scale; the rest frozen."""
+    from dynpt.train import PARTS, param_groups
+
+    over = ["model.encoder_3d.random_init=true", "model.encoder_3d.require_checkpoint=false",
+            "model.encoder_3d.depth=2", "model.encoder_3d.embed_dim=64", "model.encoder_3d.num_heads=2",
+            "model.encoder_3d.layers=[0]"] if preset != "finetune-mobility" else []
+    cfg = load_config("dynpt", preset, overrides=over)
+    assert cfg.model.windowing == "cotracker3_offline" and cfg.model.init_from == "cotracker3:"
+    model = build_model(cfg.model)
+    groups = param_groups(model, cfg.train.lr, cfg.train.lr_scale)
+    assert {g["name"] for g in groups} == trained
+    for g in groups:
+        assert g["lr"] == pytest.approx(cfg.train.lr * cfg.train.lr_scale[g["name"]])
+    for name, p in model.named_parameters():
+        part = next((k for k, pre in PARTS.items() if name.startswith(pre)), "encoder_3d")
+        assert p.requires_grad == (part in trained), name
+
+
+def test_fusion_starts_as_identity(golden, tmp_path):
+    """With the 3D encoder, the fusion conv starts as identity on the CNN features: CoTracker3's outputs."""
+    g = golden["offline"]
+    path = tmp_path / "ct3.pth"
+    torch.save(g["state"], path)
+    cfg = cw.config_from_state(g["state"], _base(), "cotracker3_offline")
+    cfg["encoder_3d"].update(random_init=True, depth=1, embed_dim=32, num_heads=2, layers=[0])
+    model = build_model(cfg)
+    fresh = cw.load_into(model, path)
+    assert {"vit_proj.weight", "fuse.weight", "transformer.mobility_head.weight"} <= set(fresh)
+    with torch.no_grad():
+        out = model.eval()(golden["video"], golden["queries"], iters=3)
+    assert (out.coords[-1][0] - g["tracks"]).norm(dim=-1).max() < 1e-3
+
+
+def test_param_groups_refuse_unknown_parts():
+    from dynpt.train import param_groups
+
+    model = build_model(load_config("dynpt", "model/tiny").model)
+    with pytest.raises(UserError, match="unknown part"):
+        param_groups(model, 1e-3, {"cnn": 1.0, "heads": 1.0})
+    with pytest.raises(UserError, match="freezes every part"):
+        param_groups(model, 1e-3, {k: 0.0 for k in ("cnn", "correlation", "transformer", "mobility", "fusion")})
