@@ -24,7 +24,7 @@ def one_case(frames: int, height: int, width: int, iters: int, threads: int, ove
     import numpy as np
     import torch
 
-    from c4d.config import load_config
+    from c4d_core.config import load_config
     from c4d_pipeline.flow import build_flow
     from c4d_pipeline.motion_mask import oracle_tracks
     from c4d_pipeline.optimize import optimise

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from c4d.config import load_config
+from c4d_core.config import load_config
 from datagen import render
 from datagen.assets import load_asset_library
 from datagen.generate import describe_and_simulate, generate_scene

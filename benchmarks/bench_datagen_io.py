@@ -27,8 +27,8 @@ import zlib
 import cv2
 import numpy as np
 
-from c4d.config import load_config
-from c4d.system import require_egl
+from c4d_core.config import load_config
+from c4d_core.system import require_egl
 from datagen.cli import usable_cpus
 from datagen.shards import decode_array, decode_scene, encode_array, encode_scene, list_shards
 

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from c4d.config import load_config
+from c4d_core.config import load_config
 from dynpt.inference import Tracker
 from dynpt.model import build_model
 

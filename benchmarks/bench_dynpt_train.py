@@ -40,7 +40,7 @@ from pathlib import Path
 import cv2
 import torch
 
-from c4d.config import load_config
+from c4d_core.config import load_config
 
 MODELS = {  # name -> (preset, overrides, frame size factor: the clip's H and W are multiplied by it)
     "tiny": ("tiny-cpu", [], 1),

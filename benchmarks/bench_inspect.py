@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from c4d.inspect import dataset_report, point_render
+from c4d_core import geometry
 from c4d_pipeline.synthetic import make_box_scene
-from datagen import geometry, shards
+from datagen import shards
 from timing import median_seconds
 
 

@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from c4d.config import load_config
+from c4d_core.config import load_config
 from c4d_pipeline.eval_metrics import mask_iou
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.motion_mask import (

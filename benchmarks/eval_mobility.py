@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from c4d.files import write_text
+from c4d_core.files import write_text
 from dynpt.evaluate import TRACK_KINDS, load_eval_scenes, mobility_counted, track_item
 from dynpt.inference import load_tracker
 from dynpt.metrics import average_precision, dynamic_accuracy, paired_bootstrap_interval, roc_auc

@@ -14,7 +14,7 @@ import sys
 import traceback
 
 from c4d import __version__
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 # name -> (module, one-line help), in the order of the data flow.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {

@@ -26,9 +26,9 @@ from typing import Callable
 import yaml
 
 from c4d.cli import run_subcommand
-from c4d.config import load_config, to_dict
-from c4d.errors import UserError
-from c4d.files import write_json
+from c4d_core.config import load_config, to_dict
+from c4d_core.errors import UserError
+from c4d_core.files import write_json
 
 log = logging.getLogger("c4d.demo")
 

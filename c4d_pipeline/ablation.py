@@ -30,9 +30,9 @@ import cv2
 import numpy as np
 import torch
 
-from c4d.config import load_config
-from c4d.errors import UserError
-from c4d.files import write_json, write_text
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
+from c4d_core.files import write_json, write_text
 from c4d_pipeline.eval_metrics import depth_metrics, mask_iou, pose_metrics
 from c4d_pipeline.flow import build_flow, resize_intrinsics, resize_nearest
 from c4d_pipeline.motion_mask import (MotionMaskConfig, correspondence_motion_masks,

@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from c4d.errors import UserError
-from c4d.files import write_json
+from c4d_core.errors import UserError
+from c4d_core.files import write_json
 from c4d_pipeline.eval_metrics import DEPTH_ALIGNMENTS, depth_metrics, mask_iou, pose_metrics
 from c4d_pipeline.motion_mask import ground_truth_motion_masks
 from c4d_pipeline.outputs import Reconstruction, read_reconstruction

@@ -30,7 +30,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from dynpt.dust3r_checkpoint import OfficialCheckpoint, block_count, read_checkpoint
 from dynpt.vit_encoder import (LAYER_NORM_EPS, Attention, Dust3rEncoder, Mlp, RoPE2D, split_heads,
                                encoder_kwargs)

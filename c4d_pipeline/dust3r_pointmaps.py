@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rNet, load_dust3r
 from c4d_pipeline.pointmaps import PairwisePointmaps, sanitize
 

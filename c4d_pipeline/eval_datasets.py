@@ -29,9 +29,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
+from c4d_core.geometry import invert_pose
 from c4d_pipeline.outputs import read_tum
-from datagen.geometry import invert_pose
 from dynpt.video_io import IMAGE_SUFFIXES
 
 SINTEL_TAG = 202021.25

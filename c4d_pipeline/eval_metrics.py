@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from scipy.optimize import minimize_scalar
 
-from c4d.errors import UserError
-from c4d_pipeline.alignment import weighted_procrustes
-from datagen.geometry import invert_pose
+from c4d_core.errors import UserError
+from c4d_core.geometry import invert_pose
+from c4d_pipeline.procrustes import weighted_procrustes
 
 DEPTH_ALIGNMENTS = ("scale_shift", "scale")
 

@@ -23,11 +23,11 @@ from typing import Protocol, Sequence
 import cv2
 import numpy as np
 
-from c4d.errors import UserError
-from datagen.geometry import invert_pose, pixel_grid, project, transform_points, unproject_depth_map
+from c4d_core.errors import UserError
+from c4d_core.geometry import invert_pose, pixel_grid, project, transform_points, unproject_depth_map
+from c4d_pipeline.flow_inputs import Pair, check_flow_inputs
 from datagen.scene import Scene
 
-Pair = tuple[int, int]
 DIS_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
     "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
@@ -63,22 +63,6 @@ def build_flow(spec: str, scene: Scene | None = None, device=None) -> FlowEstima
 
         return RaftFlow(arg, device)
     raise UserError(f"unknown flow {spec!r}; choose 'dis', 'dis:fast', 'gt' or 'raft:PATH'")
-
-
-def check_flow_inputs(frames: np.ndarray, pairs: Sequence[Pair]) -> None:
-    """Raise `UserError` unless frames is uint8 (T,H,W,3) and every pair indexes a frame."""
-    if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3:
-        raise UserError(
-            f"flow needs uint8 RGB frames of shape (T,H,W,3), got {frames.dtype} {frames.shape}; "
-            "convert the video to 8-bit RGB first"
-        )
-    num_frames = frames.shape[0]
-    for i, j in pairs:
-        if not (0 <= i < num_frames and 0 <= j < num_frames):
-            raise UserError(
-                f"flow pair ({i}, {j}) is outside the video of {num_frames} frames; "
-                "build the pairs from the same frames"
-            )
 
 
 class DISFlow:

@@ -40,9 +40,9 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
+from c4d_core.geometry import pixel_grid, project, unproject_depth_map
 from c4d_pipeline.flow import scene_point_motion
-from datagen.geometry import pixel_grid, project, unproject_depth_map
 from datagen.scene import Scene
 
 log = logging.getLogger(__name__)

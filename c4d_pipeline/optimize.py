@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from c4d_pipeline import objectives
 from c4d_pipeline.alignment import Initialisation, initialise
 from c4d_pipeline.pointmaps import PairwisePointmaps

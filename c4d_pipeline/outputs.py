@@ -25,10 +25,10 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from c4d.errors import UserError
-from c4d.files import atomic_path, write_bytes, write_json, write_text
-from datagen import geometry
-from datagen.visualize import colorize_depth
+from c4d_core import geometry
+from c4d_core.draw import colorize_depth
+from c4d_core.errors import UserError
+from c4d_core.files import atomic_path, write_bytes, write_json, write_text
 
 
 @dataclass

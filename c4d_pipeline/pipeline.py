@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from c4d.config import to_dict
-from c4d.errors import UserError
+from c4d_core.config import to_dict
+from c4d_core.errors import UserError
 from c4d_pipeline import motion_mask as mm
 from c4d_pipeline.alignment import initialise
 from c4d_pipeline.objectives import sample_points

@@ -32,9 +32,9 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from c4d.config import to_dict
-from c4d.errors import UserError
-from c4d.files import atomic_path
+from c4d_core.config import to_dict
+from c4d_core.errors import UserError
+from c4d_core.files import atomic_path
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from datagen.shards import read_scenes

@@ -20,10 +20,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from c4d.errors import UserError
-from c4d_pipeline.alignment import weighted_procrustes
+from c4d_core import geometry
+from c4d_core.errors import UserError
+from c4d_pipeline.procrustes import weighted_procrustes
 from c4d_pipeline.flow import scene_point_motion
-from datagen import geometry
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
+from c4d_pipeline.flow_inputs import check_flow_inputs
 from dynpt.dust3r_checkpoint import read_checkpoint
 
 log = logging.getLogger(__name__)
@@ -269,8 +270,6 @@ class RaftFlow:
     @torch.no_grad()
     def flow(self, frames: np.ndarray, pairs: Sequence[tuple[int, int]]) -> np.ndarray:
         """frames uint8 (T,H,W,3), pairs P x (i, j) -> float32 (P,H,W,2) (dx, dy) from i to j."""
-        from c4d_pipeline.flow import check_flow_inputs
-
         check_flow_inputs(frames, pairs)
         T, H, W = frames.shape[:3]
         if len(pairs) == 0:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 
 def window_offsets(window: int, stride: int, start: int = 1) -> list[int]:

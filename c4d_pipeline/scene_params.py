@@ -37,7 +37,7 @@ def quat_to_rotation(quat: torch.Tensor) -> torch.Tensor:
 
 def rotation_to_quat(rot: torch.Tensor) -> torch.Tensor:
     """(...,3,3) rotations -> (...,4) quaternions (w,x,y,z); uses the project's numpy helper."""
-    from datagen.geometry import matrix_to_quat
+    from c4d_core.geometry import matrix_to_quat
 
     return torch.as_tensor(matrix_to_quat(rot.detach().cpu().double().numpy()), dtype=rot.dtype)
 

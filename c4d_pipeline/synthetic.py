@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from datagen import geometry
+from c4d_core import geometry
 from datagen.scene import Scene
 
 DOME_RADIUS = 40.0

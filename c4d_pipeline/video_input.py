@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from dynpt.video_io import read_video
 
 PATCH = 16

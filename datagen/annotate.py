@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datagen import geometry
+from c4d_core import geometry
 
 
 def segment_poses(object_to_world: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 log = logging.getLogger(__name__)
 

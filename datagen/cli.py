@@ -27,10 +27,10 @@ from typing import Any, Iterator
 from tqdm import tqdm
 
 import datagen
-from c4d.config import available_presets, load_config, parse_overrides, to_dict
-from c4d.errors import UserError
-from c4d.files import disk_error, write_json
-from c4d.system import require_egl
+from c4d_core.config import available_presets, load_config, parse_overrides, to_dict
+from c4d_core.errors import UserError
+from c4d_core.files import disk_error, write_json
+from c4d_core.system import require_egl
 from datagen.jobs import SHARD_PATTERN, ShardPlan, resolve_task
 from datagen.shards import FORMAT_VERSION, KEY_PATTERN, ShardWriter, encode_scene, scene_key
 

@@ -1,6 +1,6 @@
 """One fully labelled scene: sample a description -> simulate -> render -> annotate.
 
-    cfg = c4d.config.load_config("datagen", "movi-e", overrides=["resolution=[128,128]"])
+    cfg = c4d_core.config.load_config("datagen", "movi-e", overrides=["resolution=[128,128]"])
     assets = datagen.assets.load_asset_library(cfg)   # once per worker process
     scene = generate_scene(cfg, scene_index=7, assets=assets)
 
@@ -15,7 +15,8 @@ import time
 import numpy as np
 
 import datagen
-from datagen import annotate, geometry, render
+from c4d_core import geometry
+from datagen import annotate, render
 from datagen.assets import AssetLibrary, load_asset_library
 from datagen.sampling import SceneDescription, sample_scene
 from datagen.scene import Scene

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 SHARD_PATTERN = "{split}-{shard:06d}.tar"
 

@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from c4d.system import require_egl
-from datagen import geometry, textures
+from c4d_core import geometry
+from c4d_core.system import require_egl
+from datagen import textures
 from datagen.assets import Asset, AssetLibrary
 from datagen.sampling import SceneDescription
 

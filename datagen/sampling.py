@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from datagen import geometry
+from c4d_core import geometry
 from datagen.assets import AssetLibrary
 
 

@@ -26,8 +26,8 @@ from typing import Any, Iterable, Iterator, Sequence
 import cv2
 import numpy as np
 
-from c4d.errors import UserError
-from c4d.files import disk_error, json_default
+from c4d_core.errors import UserError
+from c4d_core.files import disk_error, json_default
 from datagen.scene import Scene
 
 FORMAT_VERSION = 2  # 2: rgb as raw `rgb.npy` (decodes ~50x faster than 1's PNG, docs/perf)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as pb
 
-from datagen import geometry
+from c4d_core import geometry
 from datagen.assets import AssetLibrary
 from datagen.sampling import SceneDescription
 

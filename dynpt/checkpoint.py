@@ -20,8 +20,8 @@ from typing import Mapping
 import torch
 from torch import nn
 
-from c4d.errors import UserError
-from c4d.files import atomic_path
+from c4d_core.errors import UserError
+from c4d_core.files import atomic_path
 from dynpt.model import DynPT, build_model, plain_config
 
 log = logging.getLogger(__name__)

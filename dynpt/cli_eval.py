@@ -6,7 +6,7 @@ import argparse
 import re
 from pathlib import Path
 
-from c4d.config import load_config
+from c4d_core.config import load_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

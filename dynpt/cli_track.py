@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 log = logging.getLogger("c4d.track")
 
@@ -44,7 +44,7 @@ def _read_queries(path: str) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    from datagen.visualize import draw_tracks_enlarged
+    from c4d_core.draw import draw_tracks_enlarged
     from dynpt.inference import load_tracker
     from dynpt.video_io import read_video, write_video
 

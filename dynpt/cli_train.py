@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from c4d.config import add_training_arguments, load_config
+from c4d_core.config import add_training_arguments, load_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from datagen.scene import Scene
 from datagen.shards import decode_scene, iter_samples, list_shards
 from dynpt.augment import augment_clip

@@ -27,7 +27,7 @@ from typing import Any
 
 import torch
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 log = logging.getLogger(__name__)
 

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from c4d.errors import UserError
-from c4d.files import write_json, write_text
+from c4d_core.draw import contact_sheet, draw_tracks_enlarged
+from c4d_core.errors import UserError
+from c4d_core.files import write_json, write_text
 from datagen.shards import list_shards, read_scenes
-from datagen.visualize import contact_sheet, draw_tracks_enlarged
 from dynpt.augment import resize_clip
 from dynpt.metrics import dynamic_accuracy, paired_bootstrap_interval, tapvid_metrics
 from dynpt.tapvid_data import read_tapvid, sample_queries

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from c4d.errors import UserError
-from c4d.files import atomic_path
+from c4d_core.errors import UserError
+from c4d_core.files import atomic_path
 from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
 from dynpt.model import DynPT
 from dynpt.query_sampling import sample_queries

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from dynpt.cnn_encoder import CNNEncoder
 from dynpt.correlation import CorrelationEncoder, feature_pyramid
 from dynpt.embeddings import fourier_dim, fourier_encode

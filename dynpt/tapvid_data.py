@@ -21,7 +21,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 QUERY_STRIDE = 5  # the benchmark's 'strided' mode queries every 5th frame
 

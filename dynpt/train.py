@@ -27,8 +27,8 @@ import torch.distributed as dist
 from omegaconf import OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
-from c4d.config import to_dict
-from c4d.errors import UserError
+from c4d_core.config import to_dict
+from c4d_core.errors import UserError
 from dynpt.checkpoint import load_checkpoint, save_checkpoint
 from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
 from dynpt.evaluate import evaluate_model, load_eval_scenes, track_image

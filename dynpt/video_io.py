@@ -1,6 +1,6 @@
 """Reading user videos (files or folders of images) and writing result videos, with clear errors.
 
-Frames are RGB uint8 (T,H,W,3). Writing delegates to `datagen.visualize.write_video` (atomic,
+Frames are RGB uint8 (T,H,W,3). Writing delegates to `c4d_core.video.write_video` (atomic,
 container by extension) and only turns its failures into `UserError`s.
 """
 
@@ -14,8 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from c4d.errors import UserError
-from datagen import visualize
+from c4d_core import video
+from c4d_core.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +87,6 @@ def read_video(path_or_image_folder: str | os.PathLike, stride: int = 1, max_fra
 def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) -> Path:
     """Write RGB uint8 frames (T,H,W,3) to .mp4/.webm/.avi/.gif atomically."""
     try:
-        return visualize.write_video(path, frames, fps)
+        return video.write_video(path, frames, fps)
     except (ValueError, OSError) as exc:
         raise UserError(f"cannot write video {str(path)!r}: {exc}") from exc

@@ -20,7 +20,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from dynpt.dust3r_checkpoint import OfficialCheckpoint, block_count, read_checkpoint, rope_frequency
 
 ENCODER_PREFIXES = ("patch_embed.", "enc_blocks.", "enc_norm.")

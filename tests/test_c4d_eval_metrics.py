@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
+from c4d_core.geometry import make_pose, quat_to_matrix
 from c4d_pipeline.eval_metrics import align_trajectory, depth_metrics, fit_depth_alignment, mask_iou, pose_metrics
-from datagen.geometry import make_pose, quat_to_matrix
 
 CUBE = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)  # (8,3)
 

@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from c4d_pipeline.flow import build_flow, resize_nearest
 from c4d_pipeline.synthetic import make_box_scene
 from datagen.generate import generate_scene

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from c4d_pipeline.scene_graph import (frame_neighbours, graph_from_config, is_connected,
                                       strided_window_pairs, window_offsets)
 

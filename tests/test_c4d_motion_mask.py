@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from c4d_pipeline.eval_metrics import mask_iou
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.motion_mask import (

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from c4d_pipeline import objectives as obj
-from c4d_pipeline.alignment import estimate_focal, weighted_procrustes
+from c4d_pipeline.alignment import estimate_focal
+from c4d_pipeline.procrustes import weighted_procrustes
 from c4d_pipeline.scene_params import pixel_rays, quat_to_rotation
 
 

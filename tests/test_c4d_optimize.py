@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from c4d_pipeline import optimize as opt
 from c4d_pipeline.alignment import initialise
 from c4d_pipeline.eval_metrics import pose_metrics

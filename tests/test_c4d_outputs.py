@@ -5,16 +5,16 @@ import json
 import numpy as np
 import pytest
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.motion_mask import oracle_tracks
 from c4d_pipeline.outputs import (Reconstruction, read_ply, read_reconstruction, read_tum, tum_lines,
                                   write_reconstruction)
+from c4d_core import geometry
 from c4d_pipeline.pipeline import lift_tracks, reconstruct
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from c4d_pipeline.synthetic import make_box_scene
-from datagen import geometry
 
 
 

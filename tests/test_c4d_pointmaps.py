@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from c4d.errors import UserError
+from c4d_core import geometry
+from c4d_core.errors import UserError
 from c4d_pipeline.pointmaps import GroundTruthPointmaps, PairwisePointmaps, PointmapSource, sanitize
 from c4d_pipeline.synthetic import make_box_scene
-from datagen import geometry
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from c4d.cli import main
-from c4d.config import load_config
+from c4d_core.config import load_config
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.video_input import dust3r_resize, load_video_input, plan_preprocessing
 from datagen.generate import generate_scene

@@ -2,8 +2,8 @@
 
 import pytest
 
-from c4d.config import available_presets, load_config, parse_overrides, to_dict
-from c4d.errors import UserError
+from c4d_core.config import available_presets, load_config, parse_overrides, to_dict
+from c4d_core.errors import UserError
 from dynpt.model import build_model
 
 

@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from datagen import annotate, geometry
+from c4d_core import geometry
+from datagen import annotate
 
 H, W = 24, 32
 K = geometry.intrinsics_from_lens(35.0, 32.0, H, W)

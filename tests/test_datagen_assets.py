@@ -8,8 +8,8 @@ import pytest
 import trimesh
 from PIL import Image
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from datagen import textures
 from datagen.assets import load_asset_library
 from datagen.generate import generate_scene

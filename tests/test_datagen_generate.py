@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from c4d.config import load_config
-from datagen import geometry, render
+from c4d_core import geometry
+from c4d_core.config import load_config
+from datagen import render
 from datagen.assets import load_asset_library
 from datagen.generate import describe_and_simulate, generate_scene
 from datagen.scene import Scene

@@ -8,8 +8,8 @@ settling alone. Only the physics stage runs (no rendering), at the default 24 fr
 import numpy as np
 import pytest
 
-from c4d.config import load_config
-from datagen import geometry
+from c4d_core import geometry
+from c4d_core.config import load_config
 from datagen.assets import load_asset_library
 from datagen.generate import describe_and_simulate
 

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from datagen import Scene, read_scenes
 from datagen.jobs import ShardPlan, resolve_task
 from datagen.shards import (

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet, load_dust3r, postprocess
 from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps, to_network_input
 from c4d_pipeline.pointmaps import PointmapSource

@@ -5,7 +5,7 @@ import os
 import pytest
 import torch
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from dynpt.checkpoint import FORMAT, load_checkpoint, model_from_checkpoint, save_checkpoint
 from dynpt.inference import load_tracker
 from test_dynpt_model import (

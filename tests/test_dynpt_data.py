@@ -83,7 +83,7 @@ def test_full_augmentation_is_deterministic_by_seed():
 
 import pytest  # noqa: E402
 
-from c4d.errors import UserError  # noqa: E402
+from c4d_core.errors import UserError  # noqa: E402
 from dynpt.data import ShardStream, StreamPosition, choose_clip, merge_positions, sample_tracks  # noqa: E402
 from tests.dynpt_testdata import synthetic_scene, synthetic_shards  # noqa: E402
 

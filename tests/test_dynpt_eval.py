@@ -10,11 +10,11 @@ import pytest
 from omegaconf import OmegaConf
 
 from c4d.cli import main
+from c4d_core.config import load_config
 from dynpt.checkpoint import save_checkpoint
 from dynpt.evaluate import TRACK_KINDS, evaluate_items, load_source, track_kinds
 from dynpt.model import build_model
 from dynpt.tapvid_data import queries_first, queries_strided, read_tapvid
-from c4d.config import load_config
 from tests.dynpt_testdata import synthetic_shards
 
 

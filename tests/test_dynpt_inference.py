@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from c4d.cli import main
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from dynpt.checkpoint import save_checkpoint
 from dynpt.inference import Tracker, load_tracker
 from dynpt.query_sampling import sample_queries

@@ -6,8 +6,8 @@ import argparse
 import pytest
 import torch
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from dynpt.model import build_model
 from dynpt.vit_encoder import Dust3rEncoder
 

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from c4d.cli import main
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from dynpt.checkpoint import load_checkpoint
 from dynpt.train import accumulation_steps, train
 from tests.dynpt_testdata import generated_shards, synthetic_shards

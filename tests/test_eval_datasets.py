@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from c4d_pipeline.eval_datasets import (SINTEL_TAG, associate, load_eval_dataset, read_sintel_camera,
                                         read_sintel_depth)
 

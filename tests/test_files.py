@@ -1,4 +1,4 @@
-"""c4d.files: writes through a temporary sibling never leave a half-written or lost file."""
+"""c4d_core.files: writes through a temporary sibling never leave a half-written or lost file."""
 
 import errno
 import json
@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from c4d.errors import UserError
-from c4d.files import atomic_path, write_json, write_text
+from c4d_core.errors import UserError
+from c4d_core.files import atomic_path, write_json, write_text
 
 
 def test_atomic_path_renames_into_place_and_creates_the_folder(tmp_path):

@@ -11,10 +11,11 @@ import pytest
 
 from c4d.cli import main
 from c4d.inspect import point_render, recon_report
+from c4d_core import geometry
 from c4d_pipeline import outputs
 from c4d_pipeline.motion_mask import ground_truth_motion_masks
 from c4d_pipeline.synthetic import make_box_scene
-from datagen import geometry, shards
+from datagen import shards
 from datagen.scene import Scene
 
 
@@ -108,7 +109,7 @@ def test_report_writes_videos_plots_and_a_page(tmp_path, recon_dir, box_scene):
     for name in ("overview.webm", "depth.webm", "masks.webm", "flythrough.webm", "trajectory.png",
                  "flythrough.png", "ply.png", "index.html"):
         assert (out / name).is_file(), name
-    from datagen.visualize import read_video_frames
+    from c4d_core.video import read_video_frames
 
     overview = read_video_frames(out / "overview.webm")
     assert overview.shape[0] == 8 and overview.shape[1] >= 192 and _not_blank(overview[0])

@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.raft import RAFT, RaftFlow, correlation_pyramid, load_raft, lookup, upsample_flow
 

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 from dynpt.dust3r_checkpoint import parse_constructor, read_checkpoint
 from dynpt.vit_encoder import Dust3rEncoder, RoPE2D, load_dust3r_encoder, patch_positions
 

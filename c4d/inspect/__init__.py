@@ -3,5 +3,5 @@
 - `dataset_report`: statistics, distributions, sample videos and `--check` of datagen shards.
 - `recon_report`: videos, trajectory, 4D fly-through and file checks of a `c4d run` directory.
 - `point_render`: the numpy point splatter behind the fly-throughs.
-Drawing primitives (colour maps, track overlays, video files) live in `datagen.visualize`.
+Drawing primitives (colour maps, track overlays, video files) live in `c4d_core.draw` and `c4d_core.video`.
 """

@@ -11,8 +11,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def _run_check(args, cfg) -> int:
     print(f"checked {result.num_samples} scenes: {result.num_bad_samples} with problems "
           f"({len(result.problems)} problems)")
     if args.out is not None:
-        from c4d.files import write_json
+        from c4d_core.files import write_json
 
         write_json(args.out / "check.json", {
             "source": args.source, "scenes": result.num_samples,

@@ -21,10 +21,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from c4d.errors import UserError
-from c4d.files import write_json
 from c4d.inspect import html, plots
-from datagen import shards, visualize
+from c4d_core import draw
+from c4d_core.errors import UserError
+from c4d_core.files import write_json
+from c4d_core.video import write_image, write_video
+from datagen import shards
 from datagen.scene import Scene
 
 # --------------------------------------------------------------------------------------------
@@ -259,19 +261,19 @@ def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
     Small scenes are scaled up by an integer factor so the pictures stay legible; tracks are
     moved to the scaled pixel grid (centres at integers: x' = (x + 0.5) f - 0.5).
     """
-    factor = visualize.display_scale(scene.rgb.shape[1], cfg.min_panel_height)
+    factor = draw.display_scale(scene.rgb.shape[1], cfg.min_panel_height)
     tracks = (scene.tracks.transpose(1, 0, 2) + 0.5) * factor - 0.5  # (T,N,2)
     moving = None if scene.moving is None else scene.moving.T  # (T,N)
     radius = max(1.5, cfg.track_radius * factor * max(scene.image_size))
-    panels = [visualize.draw_tracks(visualize.upscale(scene.rgb, factor), tracks, ~scene.occluded.T, moving,
+    panels = [draw.draw_tracks(draw.upscale(scene.rgb, factor), tracks, ~scene.occluded.T, moving,
                                     radius=radius, legend=moving is not None)]
     labels = ["rgb + tracks"]
-    for name, colorize in (("depth", visualize.colorize_depth),
-                           ("segmentation", visualize.colorize_segmentation),
-                           ("flow_fwd", visualize.colorize_flow)):
+    for name, colorize in (("depth", draw.colorize_depth),
+                           ("segmentation", draw.colorize_segmentation),
+                           ("flow_fwd", draw.colorize_flow)):
         value = getattr(scene, name)
         if value is not None:
-            panels.append(visualize.upscale(colorize(value), factor))
+            panels.append(draw.upscale(colorize(value), factor))
             labels.append(name)
     return panels, labels
 
@@ -279,16 +281,16 @@ def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
 def scene_video(scene: Scene, cfg) -> np.ndarray:
     """All panels side by side: RGB uint8 (T,H',W',3)."""
     panels, labels = scene_panels(scene, cfg)
-    return visualize.side_by_side(panels, labels)
+    return draw.side_by_side(panels, labels)
 
 
 def scene_contact_sheet(scene: Scene, cfg, num_frames: int) -> np.ndarray:
     """`num_frames` evenly spaced frames (rows) of all panels (columns): one RGB uint8 image."""
     panels, labels = scene_panels(scene, cfg)
     times = np.unique(np.linspace(0, scene.num_frames - 1, num_frames).round().astype(int))
-    rows = [visualize.side_by_side([p[t] for p in panels], [f"{labels[0]} t={t}"] + labels[1:])
+    rows = [draw.side_by_side([p[t] for p in panels], [f"{labels[0]} t={t}"] + labels[1:])
             for t in times]
-    return visualize.contact_sheet(rows, columns=1)
+    return draw.contact_sheet(rows, columns=1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -298,8 +300,8 @@ def scene_contact_sheet(scene: Scene, cfg, num_frames: int) -> np.ndarray:
 
 def _write_scene_pictures(scene: Scene, folder: Path, cfg, video_ext: str) -> tuple[Path, Path]:
     fps = float(scene.meta.get("fps", cfg.fps))
-    sheet = visualize.write_image(folder / "sheet.png", scene_contact_sheet(scene, cfg, cfg.sheet_frames))
-    video = visualize.write_video(folder / f"video{video_ext}", scene_video(scene, cfg), fps)
+    sheet = write_image(folder / "sheet.png", scene_contact_sheet(scene, cfg, cfg.sheet_frames))
+    video = write_video(folder / f"video{video_ext}", scene_video(scene, cfg), fps)
     return sheet, video
 
 
@@ -412,7 +414,7 @@ def build_scene_report(source, out: str | Path, index: int, cfg, split: str | No
     scene = sample.scene
     out = Path(out)
     sheet, video = _write_scene_pictures(scene, out, cfg, video_ext)
-    all_frames = visualize.write_image(out / "all_frames.png",
+    all_frames = write_image(out / "all_frames.png",
                                        scene_contact_sheet(scene, cfg, scene.num_frames))
     curves = plots.track_curves(out / "tracks.png", scene, cfg.track_curves)
     problems = validate_scene(scene, cfg)

@@ -11,7 +11,7 @@ import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from c4d.files import write_text
+from c4d_core.files import write_text
 
 _STYLE = """
 body { font-family: sans-serif; margin: 1.5em; max-width: 1400px; color: #222; }

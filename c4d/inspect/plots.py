@@ -11,8 +11,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
 import numpy as np  # noqa: E402
 
-from c4d.files import atomic_path  # noqa: E402
-from datagen import visualize  # noqa: E402
+from c4d_core import draw  # noqa: E402
+from c4d_core.files import atomic_path  # noqa: E402
 from datagen.scene import Scene  # noqa: E402
 
 DPI = 100
@@ -61,7 +61,7 @@ def track_curves(path: str | os.PathLike, scene: Scene, max_tracks: int) -> Path
     t = np.arange(scene.num_frames)
     chosen = np.unique(np.linspace(0, scene.num_tracks - 1, min(max_tracks, scene.num_tracks)).astype(int))
     fig, axes = plt.subplots(1, 3, figsize=(15, 3.5))
-    static_c, moving_c = (np.array(c) / 255 for c in (visualize.STATIC_COLOR, visualize.MOVING_COLOR))
+    static_c, moving_c = (np.array(c) / 255 for c in (draw.STATIC_COLOR, draw.MOVING_COLOR))
 
     if scene.displacement is not None:
         for n in chosen:

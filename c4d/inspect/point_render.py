@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from datagen import geometry
+from c4d_core import geometry
 
 NEAR = 1e-3  # points closer to the camera than this (scene units) are not drawn
 

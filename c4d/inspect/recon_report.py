@@ -18,13 +18,14 @@ import cv2
 import numpy as np
 import trimesh
 
-from c4d.errors import UserError
-from c4d.files import write_json
 from c4d.inspect import html, plots, point_render
+from c4d_core import draw, geometry
+from c4d_core.errors import UserError
+from c4d_core.files import write_json
+from c4d_core.video import write_image, write_video
 from c4d_pipeline.cli_eval_recon import read_reconstruction, scene_frame_indices
 from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
 from c4d_pipeline.outputs import read_tum
-from datagen import geometry, visualize
 
 MARKER_FILES = ("poses_tum.txt", "pointmaps.npz", "report.json")  # any one marks a reconstruction
 CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
@@ -218,24 +219,24 @@ def overview_video(recon: Reconstruction, cfg) -> np.ndarray | None:
     """Frames with tracks | depth | motion mask over the frames: RGB uint8 (T,H',W',3)."""
     if recon.frames is None:
         return None
-    factor = visualize.display_scale(recon.frames.shape[1], cfg.min_panel_height)
-    frames = visualize.upscale(recon.frames, factor)
+    factor = draw.display_scale(recon.frames.shape[1], cfg.min_panel_height)
+    frames = draw.upscale(recon.frames, factor)
     panels, labels = [frames], ["frames"]
     tracks = recon.tracks_2d
     if tracks is not None and {"tracks", "visible"} <= set(tracks) and len(tracks["tracks"]) == len(frames):
         scaled = (tracks["tracks"] + 0.5) * factor - 0.5  # (T,N,2) on the upscaled grid
-        panels[0] = visualize.draw_tracks(frames, scaled, tracks["visible"], tracks.get("moving"),
+        panels[0] = draw.draw_tracks(frames, scaled, tracks["visible"], tracks.get("moving"),
                                           radius=max(1.5, cfg.track_radius * max(frames.shape[1:3])),
                                           legend=True)
         labels[0] = "frames + tracks"
     if recon.depth is not None and recon.depth.shape[:3] == recon.frames.shape[:3]:
-        panels.append(visualize.upscale(visualize.colorize_depth(recon.depth), factor))
+        panels.append(draw.upscale(draw.colorize_depth(recon.depth), factor))
         labels.append("depth")
     if recon.masks is not None and recon.masks.shape[:3] == recon.frames.shape[:3]:
-        mask_rgb = visualize.colorize_mask(recon.masks)
-        panels.append(visualize.upscale(visualize.blend(recon.frames, mask_rgb, 0.6), factor))
+        mask_rgb = draw.colorize_mask(recon.masks)
+        panels.append(draw.upscale(draw.blend(recon.frames, mask_rgb, 0.6), factor))
         labels.append("motion mask")
-    return visualize.side_by_side(panels, labels)
+    return draw.side_by_side(panels, labels)
 
 
 def _subsample(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
@@ -302,7 +303,7 @@ def flythrough_frames(recon: Reconstruction, cfg) -> np.ndarray | None:
                                        np.tile(CAMERA_COLOR, (num_frames, 1))]).astype(np.uint8)
         image = point_render.render_points(points, point_colors, intrinsics, pose, (out_h, out_w),
                                            cfg.splat_radius)
-        views.append(visualize.label_image(image, f"frame {t}"))
+        views.append(draw.label_image(image, f"frame {t}"))
     return np.stack(views)
 
 
@@ -347,13 +348,13 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
     fps = cfg.fps
     overview = overview_video(recon, cfg)
     if overview is not None:
-        written["overview"] = visualize.write_video(out / f"overview{video_ext}", overview, fps)
+        written["overview"] = write_video(out / f"overview{video_ext}", overview, fps)
     if recon.depth is not None:
-        written["depth"] = visualize.write_video(out / f"depth{video_ext}",
-                                                 visualize.colorize_depth(recon.depth), fps)
+        written["depth"] = write_video(out / f"depth{video_ext}",
+                                                 draw.colorize_depth(recon.depth), fps)
     if recon.masks is not None:
-        written["masks"] = visualize.write_video(out / f"masks{video_ext}",
-                                                 visualize.colorize_mask(recon.masks), fps)
+        written["masks"] = write_video(out / f"masks{video_ext}",
+                                                 draw.colorize_mask(recon.masks), fps)
 
     pose_errors = None
     if recon.cam_to_world is not None:
@@ -368,11 +369,11 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
             out / "trajectory.png", estimated[:, :3, 3], None if truth is None else truth[:, :3, 3], title)
     flythrough = flythrough_frames(recon, cfg.flythrough)
     if flythrough is not None:
-        written["flythrough"] = visualize.write_video(out / f"flythrough{video_ext}", flythrough, fps)
-        written["flythrough_still"] = visualize.write_image(out / "flythrough.png", flythrough[0])
+        written["flythrough"] = write_video(out / f"flythrough{video_ext}", flythrough, fps)
+        written["flythrough_still"] = write_image(out / "flythrough.png", flythrough[0])
     ply = ply_picture(recon, cfg.flythrough)
     if ply is not None:
-        written["ply"] = visualize.write_image(out / "ply.png", ply)
+        written["ply"] = write_image(out / "ply.png", ply)
 
     summary = {
         "reconstruction": str(recon.path),

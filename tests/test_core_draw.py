@@ -1,4 +1,4 @@
-"""datagen.visualize: colour maps, track overlays, layouts and video files."""
+"""c4d_core.draw and c4d_core.video: colour maps, track overlays, layouts and video files."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from datagen import visualize as vis
+from c4d_core import draw as vis
+from c4d_core import video
 
 
 def _gray_video(t=4, h=40, w=50, value=128):
@@ -123,9 +124,9 @@ def test_write_video_round_trip(tmp_path, suffix):
     t = np.arange(5)[:, None, None, None]
     frames = np.broadcast_to(t * 50, (5, 31, 40, 3)).astype(np.uint8).copy()
     frames[:, :, :20, 0] = 255
-    path = vis.write_video(tmp_path / f"clip{suffix}", frames, fps=5)
+    path = video.write_video(tmp_path / f"clip{suffix}", frames, fps=5)
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"clip{suffix}"]
-    decoded = vis.read_video_frames(path)
+    decoded = video.read_video_frames(path)
     assert decoded.shape[0] == 5 and decoded.shape[1:3] in ((31, 40), (32, 40))
     np.testing.assert_allclose(
         decoded[:, :31].astype(float).mean(axis=(1, 2, 3)), frames.astype(float).mean(axis=(1, 2, 3)),
@@ -136,5 +137,5 @@ def test_write_video_round_trip(tmp_path, suffix):
 def test_write_image_rgb_order(tmp_path):
     image = np.zeros((4, 6, 3), np.uint8)
     image[..., 0] = 200
-    path = vis.write_image(tmp_path / "red.png", image)
+    path = video.write_image(tmp_path / "red.png", image)
     np.testing.assert_array_equal(np.asarray(Image.open(path))[0, 0], (200, 0, 0))

@@ -17,7 +17,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 
 def disk_error(path: str | os.PathLike, exc: OSError) -> UserError:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import ctypes.util
 import os
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 EGL_HELP = (
     "install Mesa's EGL and GL drivers, e.g. on Debian/Ubuntu: "

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from datagen import geometry
+from c4d_core import geometry
 
 
 def test_look_at_axes_follow_opencv():

@@ -1,0 +1,106 @@
+"""Image and video files: RGB uint8 pictures (H,W,3) and videos (T,H,W,3), written atomically.
+
+numpy, OpenCV and Pillow only; the pictures themselves are drawn by `c4d_core.draw`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from c4d_core.files import atomic_path
+
+# extension -> OpenCV fourcc; .gif is written with Pillow instead
+_VIDEO_CODECS = {".mp4": "mp4v", ".webm": "VP80", ".avi": "MJPG"}
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write an RGB uint8 (H,W,3) or grey (H,W) image; format from the extension (png, jpg)."""
+    path = Path(path)
+    image = np.asarray(image, np.uint8)
+    bgr = image[..., ::-1] if image.ndim == 3 else image
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(bgr)):
+            raise OSError(f"could not write image {path}")
+    return path
+
+
+@contextlib.contextmanager
+def _stderr_silenced():
+    """Mute the process's stderr (file descriptor 2, where C libraries print) inside the block."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) -> Path:
+    """Write RGB uint8 frames (T,H,W,3) as a video; the container follows the extension.
+
+    .mp4 (MPEG-4 part 2, plays in desktop players), .webm (VP8, plays in web browsers), .avi
+    (MJPEG) or .gif (Pillow, loops, shows inline on code-hosting sites). Written to a temporary
+    name and renamed, so an existing file is never left half-written. Odd sizes are padded to
+    even ones, which some codecs need.
+    """
+    path = Path(path)
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) == 0:
+        raise ValueError(f"frames must be uint8 (T,H,W,3) with T > 0, got {frames.dtype} {frames.shape}")
+    suffix = path.suffix.lower()
+    if suffix != ".gif" and suffix not in _VIDEO_CODECS:
+        raise ValueError(f"unknown video extension {suffix!r}: use .mp4, .webm, .avi or .gif")
+    with atomic_path(path) as tmp:
+        _encode_video(tmp, frames, fps)
+    return path
+
+
+def _encode_video(path: Path, frames: np.ndarray, fps: float) -> None:
+    """Encode RGB uint8 frames (T,H,W,3) to `path`, the codec chosen by its extension."""
+    suffix = path.suffix.lower()
+    if suffix == ".gif":
+        from PIL import Image
+
+        images = [Image.fromarray(f) for f in frames]
+        duration_ms = int(round(1000.0 / fps))
+        images[0].save(path, save_all=True, append_images=images[1:], duration=duration_ms, loop=0)
+    else:
+        pad_h, pad_w = frames.shape[1] % 2, frames.shape[2] % 2
+        if pad_h or pad_w:
+            frames = np.pad(frames, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+        height, width = frames.shape[1:3]
+        fourcc = cv2.VideoWriter_fourcc(*_VIDEO_CODECS[suffix])
+        with _stderr_silenced():  # FFmpeg prints a warning about the VP8 tag, then maps it itself
+            writer = cv2.VideoWriter(str(path), fourcc, float(fps), (width, height))
+        if not writer.isOpened():
+            raise OSError(f"OpenCV cannot encode {suffix} here; write .gif or .avi instead")
+        try:
+            for frame in frames:
+                writer.write(np.ascontiguousarray(frame[..., ::-1]))
+        finally:
+            writer.release()
+
+
+def read_video_frames(path: str | os.PathLike) -> np.ndarray:
+    """Decode every frame of a video file with OpenCV: RGB uint8 (T,H,W,3)."""
+    capture = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        frames.append(frame[..., ::-1])
+    capture.release()
+    if not frames:
+        raise OSError(f"no frames could be decoded from {path}")
+    return np.ascontiguousarray(np.stack(frames))
