@@ -34,7 +34,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from c4d.files import atomic_path
+from c4d_core.files import atomic_path
 
 H, W = 384, 512
 CASES = ("24x256", "24x1024", "48x256", "48x1024")
@@ -58,7 +58,7 @@ def _peak_mib() -> float:
 
 def run_case(case: str, windowing: str, repeats: int, threads: int, iters: int) -> dict:
     """One case in this process: median CPU and wall seconds per forward pass, peak memory."""
-    from c4d.config import load_config
+    from c4d_core.config import load_config
     from dynpt.model import build_model
 
     torch.set_num_threads(threads)

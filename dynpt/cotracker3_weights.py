@@ -43,7 +43,7 @@ from typing import Mapping
 
 import torch
 
-from c4d.errors import UserError
+from c4d_core.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +219,7 @@ def load_into(model: torch.nn.Module, path: str | os.PathLike, state: Mapping | 
 def build_from_file(path: str | os.PathLike, windowing: str | None = None):
     """A DynPT with the sizes and weights of a CoTracker3 file (mobility head fresh; see
     `config_from_state` for `windowing`); the other model keys from model/cotracker3-offline.yaml."""
-    from c4d.config import load_config
+    from c4d_core.config import load_config
     from dynpt.model import build_model, plain_config
 
     state = read_state(path)

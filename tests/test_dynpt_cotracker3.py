@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from c4d.config import load_config
-from c4d.errors import UserError
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
 from dynpt import cotracker3_weights as cw
 from dynpt.model import build_model, plain_config
 
