@@ -151,6 +151,8 @@ class Tracker:
         every chunk of queries, then drop them (CoTracker3's predictor uses 6 with given queries).
         """
         video = _check_video(video)
+        if support_grid < 0 or support_grid == 1:
+            raise UserError(f"support_grid={support_grid}: give 0 (none) or a grid size of at least 2")
         T, H, W = video.shape[:3]
         if queries is None:
             first = video[0].cpu().numpy() if isinstance(video, torch.Tensor) else video[0]
