@@ -68,8 +68,6 @@ class UpdateTransformer(nn.Module):
         mlp_ratio: float, num_virtual_tracks: int, time_embedding: str = "hidden", time_emb_len: int = 16,
     ):
         super().__init__()
-        if time_embedding not in ("hidden", "cotracker3"):
-            raise ValueError(f"time_embedding must be 'hidden' or 'cotracker3', got {time_embedding!r}")
         self.time_embedding = time_embedding
         if time_embedding == "cotracker3":  # (1,L,input_dim); replaced by CoTracker3's when loading its weights
             emb = sincos_time_embedding(time_emb_len, input_dim - input_dim % 2)
