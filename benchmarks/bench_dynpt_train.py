@@ -134,17 +134,19 @@ def step_times(model: str, steps: int, clip: str) -> dict:
               "visible": torch.rand(B, T, N, generator=gen) > 0.3,
               "moving": torch.rand(B, T, N, generator=gen) > 0.8}
     weights = LossWeights.from_config(cfg.loss)
-    times = []
+    times, cpu = [], []
     for _ in range(steps + 1):  # the first step warms up allocators
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         loss, _ = dynpt_loss(net(video, queries), target, weights)
         loss.backward()
         opt.step()
         opt.zero_grad(set_to_none=True)
         times.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - cpu_start)
     return {"model": model, "B": B, "T": T, "HxW": f"{H}x{W}", "N": N,
             "trainable_params": sum(p.numel() for p in net.parameters() if p.requires_grad),
             "step_s": statistics.median(times[1:]), "all_step_s": times[1:],
+            "step_cpu_s": statistics.median(cpu[1:]),
             "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
 
 
@@ -198,7 +200,8 @@ def main() -> None:
         r = results[-1]
         print(f"train step {r['model']:>4} (B={r['B']} T={r['T']} {r['HxW']} N={r['N']}, "
               f"{r['trainable_params'] / 1e6:.2f}M trainable): median {r['step_s']:.2f} s "
-              f"(runs {[round(t, 2) for t in r['all_step_s']]}), peak RSS {r['peak_rss_gib']:.2f} GiB")
+              f"(runs {[round(t, 2) for t in r['all_step_s']]}), CPU {r['step_cpu_s']:.2f} s, "
+              f"peak RSS {r['peak_rss_gib']:.2f} GiB")
     for r in results[1:]:
         print(f"ratio {r['model']}/{results[0]['model']} step time: "
               f"{r['step_s'] / results[0]['step_s']:.1f}x")
