@@ -40,6 +40,18 @@ def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dic
     return path
 
 
+def read_tensor_file(path: Path, kind: str, missing_hint: str, damaged_hint: str):
+    """`torch.load(path, weights_only=True)` on the CPU; a missing or unreadable file is a one-line
+    `UserError` ("<kind> checkpoint ... does not exist; <missing_hint>" / "...; <damaged_hint>")."""
+    if not path.is_file():
+        raise UserError(f"{kind} checkpoint {str(path)!r} does not exist; {missing_hint}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UserError(f"cannot read {str(path)!r} as a {kind} checkpoint ({first}); {damaged_hint}") from exc
+
+
 def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -> dict:
     """Read a DynPT checkpoint: dict with 'format', 'config', 'model', 'step', 'extra' (on CPU).
 
@@ -47,15 +59,8 @@ def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -
     architecture difference from the stored config is a `UserError` naming the keys.
     """
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"checkpoint {str(path)!r} does not exist; pass the path of a DynPT "
-                        "checkpoint written by `c4d train`")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise UserError(f"cannot read {str(path)!r} as a DynPT checkpoint ({first}); it is "
-                        "truncated or not a file written by `c4d train`") from exc
+    ckpt = read_tensor_file(path, "DynPT", "pass the path of a DynPT checkpoint written by `c4d train`",
+                            "it is truncated or not a file written by `c4d train`")
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         found = ckpt.get("format", "no format tag") if isinstance(ckpt, dict) else type(ckpt).__name__
         raise UserError(f"{str(path)!r} is not a DynPT checkpoint (expected format {FORMAT!r}, found "

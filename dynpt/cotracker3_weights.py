@@ -43,7 +43,10 @@ from typing import Mapping
 
 import torch
 
+from c4d_core.config import load_config
 from c4d_core.errors import UserError
+from dynpt.checkpoint import read_tensor_file
+from dynpt.model import build_model, plain_config
 
 log = logging.getLogger(__name__)
 
@@ -84,15 +87,8 @@ def is_cotracker3_state(state: Mapping) -> bool:
 
 def read_state(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     """CoTracker3's state dict from a file: as released, a plain state dict, or one under `model`."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"CoTracker3 checkpoint {str(path)!r} does not exist; download "
-                        "scaled_offline.pth or scaled_online.pth from huggingface.co/facebook/cotracker3")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise UserError(f"cannot read {str(path)!r} as a CoTracker3 checkpoint ({first})") from exc
+    state = read_tensor_file(Path(path), "CoTracker3", "download scaled_offline.pth or scaled_online.pth "
+                             "from huggingface.co/facebook/cotracker3", "the file is truncated or damaged")
     if isinstance(state, Mapping) and isinstance(state.get("model"), Mapping):
         state = state["model"]
     if not isinstance(state, Mapping) or not is_cotracker3_state(state):
@@ -219,9 +215,6 @@ def load_into(model: torch.nn.Module, path: str | os.PathLike, state: Mapping | 
 def build_from_file(path: str | os.PathLike, windowing: str | None = None):
     """A DynPT with the sizes and weights of a CoTracker3 file (mobility head fresh; see
     `config_from_state` for `windowing`); the other model keys from model/cotracker3-offline.yaml."""
-    from c4d_core.config import load_config
-    from dynpt.model import build_model, plain_config
-
     state = read_state(path)
     base = plain_config(load_config("dynpt", "model/cotracker3-offline").model)
     model = build_model(config_from_state(state, base, windowing))
