@@ -25,10 +25,10 @@ class ResidualBlock(nn.Module):
             )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = F.relu(self.norm1(self.conv1(x)))
-        y = F.relu(self.norm2(self.conv2(y)))
+        y = F.relu(self.norm1(self.conv1(x)), inplace=True)
+        y = F.relu(self.norm2(self.conv2(y)), inplace=True)
         skip = x if self.downsample is None else self.downsample(x)
-        return F.relu(skip + y)
+        return F.relu(skip + y, inplace=True)
 
 
 class CNNEncoder(nn.Module):
@@ -67,12 +67,12 @@ class CNNEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         size = (x.shape[-2] // 4, x.shape[-1] // 4)
-        x = F.relu(self.norm1(self.conv1(x)))  # (B,w0,H/2,W/2)
+        x = F.relu(self.norm1(self.conv1(x)), inplace=True)  # (B,w0,H/2,W/2)
         a = self.layer1(x)  # stride 2
         b = self.layer2(a)  # stride 4
         c = self.layer3(b)  # stride 8
         d = self.layer4(c)  # stride 16
         resize = lambda f: F.interpolate(f, size=size, mode="bilinear", align_corners=self.align_corners)
         x = torch.cat([resize(a), b, resize(c), resize(d)], dim=1)  # (B,sum(widths),H/4,W/4)
-        x = F.relu(self.norm2(self.conv2(x)))
+        x = F.relu(self.norm2(self.conv2(x)), inplace=True)
         return self.conv3(x)  # (B,out_dim,H/4,W/4)

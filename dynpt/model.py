@@ -141,7 +141,7 @@ class DynPT(nn.Module):
             grid = feats.transpose(1, 2).unflatten(-1, (gh, gw))  # (F,C,H/16,W/16)
             grid = F.interpolate(grid, size=fmap.shape[-2:], mode="bilinear", align_corners=False)
             fmap = self.fuse(torch.cat([fmap, grid], dim=1))  # (F,C,h,w)
-        return fmap / fmap.norm(dim=1, keepdim=True).clamp_min(1e-6)
+        return fmap * fmap.square().sum(1, keepdim=True).clamp_min(1e-12).rsqrt()  # / max(norm, 1e-6)
 
     # -- tracking -----------------------------------------------------------------------------
 
