@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "run": ("c4d_pipeline.cli_run", "reconstruct a monocular video with C4D (depth, poses, masks, 3D tracks)"),
     "eval-recon": ("c4d_pipeline.cli_eval_recon", "score a reconstruction against ground truth"),
     "demo": ("c4d.demo", "the whole chain on a small generated dataset, in minutes on a CPU"),
+    "config": ("c4d.cli_config", "print a preset's fully resolved config: config show GROUP/PRESET [key=value ...]"),
 }
 
 log = logging.getLogger("c4d")
@@ -96,6 +97,13 @@ def main(argv: list[str] | None = None) -> int:
         if verbose:
             traceback.print_exc()
         print(f"c4d: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a write no command turned into a UserError: still one line
+        from c4d_core.files import DISK_ERRNOS, disk_error
+
+        if exc.errno not in DISK_ERRNOS or verbose:
+            raise
+        print(f"c4d: error: {disk_error(exc.filename or '?', exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("c4d: interrupted", file=sys.stderr)

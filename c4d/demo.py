@@ -26,9 +26,9 @@ from typing import Callable
 import yaml
 
 from c4d.cli import run_subcommand
-from c4d_core.config import load_config, to_dict
+from c4d_core.config import load_config, to_dict, to_yaml
 from c4d_core.errors import UserError
-from c4d_core.files import write_json
+from c4d_core.files import write_json, write_text
 
 log = logging.getLogger("c4d.demo")
 
@@ -59,12 +59,11 @@ class Demo:
     # -- bookkeeping
     def claim_folder(self) -> None:
         """Refuse to resume into a folder made with another demo config."""
-        self.out.mkdir(parents=True, exist_ok=True)
-        record, wanted = self.out / "demo-config.yaml", yaml.safe_dump(to_dict(self.cfg))
-        if record.exists() and record.read_text() != wanted:
+        record = self.out / "demo-config.yaml"
+        if record.exists() and yaml.safe_load(record.read_text()) != to_dict(self.cfg):
             raise UserError(f"{self.out} holds a demo made with another config; use another --out "
                             f"or delete the folder (see {record})")
-        record.write_text(wanted)
+        write_text(record, to_yaml(self.cfg))
 
     def run_step(self, name: str, step: Callable[[Path], dict]) -> dict:
         folder = self.out / name

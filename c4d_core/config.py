@@ -1,28 +1,46 @@
 """YAML configs: presets in `configs/<group>/`, inheritance, and validated `key=value` overrides.
 
-A config file may start with `_base_: other.yaml` (a path relative to itself, or a list of them);
-the base is loaded first and the file's keys are merged over it. Everything merged after the
-preset (extra config files given with `--config`, then command-line overrides) may only set keys
-the preset already has, with values of the same type: a misspelled key or a wrong type is a
-`UserError` that names the key.
+The presets ship inside the installed package (`configs/` of the source tree is installed as the
+package `c4d_configs`, found with importlib.resources), so they work from a wheel, an sdist and an
+editable install alike; a source checkout run without installing reads its `configs/` folder.
+
+A config file may start with `_base_: other.yaml` (a path relative to itself), `_base_: c4d/tiny`
+(a shipped preset by name: `<group>/<preset>`, no `.yaml`), or a list of them; the bases are
+loaded first and the file's keys are merged over them. A config is the group's schema defaults
+(its root preset, `c4d_core.schema.ROOTS`), then the preset, then extra files given with `--config`,
+then command-line overrides; each may only set keys the root has, with values of the same type
+(a misspelled key or a wrong type is a `UserError` that names the key), and the result must pass
+the group's range rules (`c4d_core.schema.RULES`) before any command writes anything.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib.resources
+import json
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Mapping
 
 import yaml
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from c4d_core import schema
 from c4d_core.errors import UserError
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+@functools.lru_cache(maxsize=None)
+def config_dir() -> Path:
+    """The folder of the shipped presets: the installed package `c4d_configs`, or, in a source
+    checkout run without installing (PYTHONPATH), the checkout's `configs/`."""
+    try:
+        return Path(str(importlib.resources.files("c4d_configs")))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[1] / "configs"
 
 
 def available_presets(group: str) -> list[str]:
     """Names of the presets in `configs/<group>/` (file names without `.yaml`)."""
-    return sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml"))
+    return sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
 
 
 def resolve_preset(group: str, name_or_path: str | Path) -> Path:
@@ -32,7 +50,7 @@ def resolve_preset(group: str, name_or_path: str | Path) -> Path:
         if not path.is_file():
             raise UserError(f"config file {str(path)!r} does not exist")
         return path
-    preset = CONFIG_DIR / group / f"{name_or_path}.yaml"
+    preset = config_dir() / group / f"{name_or_path}.yaml"
     if not preset.is_file():
         names = ", ".join(available_presets(group)) or "(none)"
         raise UserError(f"unknown {group} preset {str(name_or_path)!r}; choose one of: {names}")
@@ -55,8 +73,20 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> DictConfig:
     bases = data.pop("_base_", [])
     merged = OmegaConf.create()
     for base in [bases] if isinstance(bases, str) else bases:
-        merged = OmegaConf.merge(merged, _read_yaml(path.parent / base, seen + (path,)))
+        merged = OmegaConf.merge(merged, _read_yaml(_base_path(path, str(base)), seen + (path,)))
     return OmegaConf.merge(merged, OmegaConf.create(data))
+
+
+def _base_path(path: Path, base: str) -> Path:
+    """The file a `_base_` entry of `path` names: a YAML path relative to `path`, or a shipped
+    preset `<group>/<preset>`."""
+    if Path(base).suffix in (".yaml", ".yml"):
+        return path.parent / base
+    group, _, name = base.rpartition("/")
+    if not group:
+        raise UserError(f"config {path}: `_base_: {base}` must be a YAML path or <group>/<preset>, "
+                        "e.g. c4d/tiny")
+    return resolve_preset(group, name)
 
 
 def _check_against(schema: Any, update: Any, prefix: str, origin: str) -> None:
@@ -117,11 +147,17 @@ def load_config(
     config_files: Iterable[str | Path] = (),
     overrides: Iterable[str] = (),
 ) -> DictConfig:
-    """Load preset `preset` of `configs/<group>/`, then extra files, then `key=value` overrides.
+    """Load preset `preset` of `configs/<group>/`, then extra files, then `key=value` overrides,
+    over the group's schema defaults, and check every value against the group's rules.
 
     Returns a read-only `DictConfig` (attribute access: `cfg.camera.focal_mm`).
     """
-    cfg = _read_yaml(resolve_preset(group, preset))
+    path = resolve_preset(group, preset)
+    cfg = _read_yaml(path)
+    if group in schema.ROOTS:
+        root = _root(group)
+        _check_against(root, OmegaConf.to_container(cfg), "", f"config {path}")
+        cfg = OmegaConf.merge(root, cfg)
     for extra in config_files:
         extra_path = Path(extra)
         if not extra_path.is_file():
@@ -132,8 +168,65 @@ def load_config(
     update = parse_overrides(overrides)
     _check_against(cfg, update, "", "command line")
     cfg = OmegaConf.merge(cfg, update)
+    if group in schema.ROOTS:
+        schema.validate(group, OmegaConf.to_container(cfg, resolve=True))
     OmegaConf.set_readonly(cfg, True)
     return cfg
+
+
+@functools.lru_cache(maxsize=None)
+def _root(group: str) -> DictConfig:
+    """The root preset of `group`: every key with its default (read once, read-only)."""
+    cfg = _read_yaml(resolve_preset(group, schema.ROOTS[group]))
+    OmegaConf.set_readonly(cfg, True)
+    return cfg
+
+
+def section_defaults(group: str, section: str) -> dict:
+    """The defaults of one section of a group (`section_defaults("c4d", "motion_mask.c4d")`)."""
+    node = _root(group)
+    for part in section.split("."):
+        node = node[part]
+    return OmegaConf.to_container(node, resolve=True)
+
+
+def defaults_from(group: str, section: str):
+    """Class decorator, placed under `@dataclass`: the fields' defaults are the root preset's
+    `section`, so the dataclass and the YAML cannot disagree; its fields must be exactly the
+    section's keys (else `TypeError` at import)."""
+    def apply(cls):
+        values, names = section_defaults(group, section), list(cls.__annotations__)
+        if set(names) != set(values):
+            raise TypeError(f"{cls.__name__} fields {sorted(names)} differ from the keys of "
+                            f"{group} `{section}` {sorted(values)}")
+        for name in names:
+            value = values[name]
+            setattr(cls, name, tuple(value) if isinstance(value, list) else value)
+        return cls
+    return apply
+
+
+def flag_overrides(flags: Mapping[str, Any], overrides: Iterable[str]) -> list[str]:
+    """The `key=value` overrides that command-line flags stand for (`flags`: config key -> the
+    flag's value, None when the flag was not given); a key set both ways is a `UserError`."""
+    given = parse_overrides(overrides)
+    result = []
+    for key, value in flags.items():
+        if value is None:
+            continue
+        if _has_key(given, key):
+            raise UserError(f"`{key}` is set both by a flag and by `{key}=...`; give it once")
+        result.append(f"{key}={json.dumps(value)}")
+    return result
+
+
+def _has_key(nested: dict, key: str) -> bool:
+    *parents, last = key.split(".")
+    for part in parents:
+        nested = nested.get(part)
+        if not isinstance(nested, dict):
+            return False
+    return last in nested
 
 
 def add_training_arguments(parser, group: str, default: str | None = None) -> None:
@@ -151,3 +244,9 @@ def add_training_arguments(parser, group: str, default: str | None = None) -> No
 def to_dict(cfg: DictConfig) -> dict:
     """A plain, YAML-serialisable copy of a config (for checkpoints, meta and reports)."""
     return OmegaConf.to_container(cfg, resolve=True)
+
+
+def to_yaml(cfg: DictConfig | dict) -> str:
+    """The resolved config (or its `to_dict` copy) as YAML text, keys in the order of the presets:
+    what `c4d config show` prints and every run folder keeps."""
+    return yaml.safe_dump(cfg if isinstance(cfg, dict) else to_dict(cfg), sort_keys=False)

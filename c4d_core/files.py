@@ -20,14 +20,35 @@ import numpy as np
 from c4d_core.errors import UserError
 
 
+# errno values of a failed write that the user fixes by choosing another place (or freeing space)
+DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES,
+                         errno.EPERM, errno.ENOTDIR, errno.EISDIR, errno.EEXIST})
+
+
 def disk_error(path: str | os.PathLike, exc: OSError) -> UserError:
     """The `UserError` for a failed write of `path` (disk full, permissions, read-only disk)."""
-    if exc.errno == errno.ENOSPC:
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        why = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
+               errno.EFBIG: "file size limit exceeded"}[exc.errno]
         return UserError(
-            f"no space left on the device while writing {path}; free some space or choose another "
+            f"{why} while writing {path}; free some space or choose another "
             "output folder, then run the same command again: finished files are kept"
         )
+    if exc.errno in (errno.ENOTDIR, errno.EEXIST):
+        parent = next((p for p in (Path(path), *Path(path).parents) if p.exists()), None)
+        if parent is not None and not parent.is_dir():
+            return UserError(f"cannot write {path}: {parent} is a file, not a folder; choose "
+                             "another output folder")
     return UserError(f"cannot write {path}: {exc.strerror or exc}; choose a writable output folder")
+
+
+def _remove_quietly(path: Path) -> None:
+    """Delete `path` if it exists; a failure (read-only disk, a file as folder) is not reported,
+    so that it never hides the error that made the cleanup necessary."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 @contextlib.contextmanager
@@ -52,7 +73,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             raise
         raise disk_error(path, exc) from exc
     finally:
-        tmp.unlink(missing_ok=True)
+        _remove_quietly(tmp)
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -65,6 +86,33 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 def write_text(path: str | os.PathLike, text: str) -> Path:
     """Write `text` (UTF-8) to `path` atomically; returns `path`."""
     return write_bytes(path, text.encode("utf-8"))
+
+
+def append_line(path: str | os.PathLike, line: str) -> None:
+    """Append `line` and a newline to the text file `path` (created if missing) in one write.
+
+    If the write fails part-way (disk full), the file is cut back to its old length, so it never
+    ends in a half line; the error becomes a `UserError` naming the file.
+    """
+    data = (line + "\n").encode("utf-8")
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    except OSError as exc:
+        raise disk_error(path, exc) from exc
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            written = os.write(fd, data)
+            if written != len(data):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        except OSError as exc:
+            try:
+                os.ftruncate(fd, size)
+            except OSError:
+                pass  # the append was not made at all
+            raise disk_error(path, exc) from exc
+    finally:
+        os.close(fd)
 
 
 def json_default(value: Any) -> Any:

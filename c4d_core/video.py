@@ -24,9 +24,11 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     path = Path(path)
     image = np.asarray(image, np.uint8)
     bgr = image[..., ::-1] if image.ndim == 3 else image
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(bgr)):
-            raise OSError(f"could not write image {path}")
+    ok, data = cv2.imencode(path.suffix, np.ascontiguousarray(bgr))
+    if not ok:
+        raise ValueError(f"OpenCV cannot encode {path.suffix!r} images; use .png or .jpg")
+    with atomic_path(path) as tmp:  # written by Python, so a disk error keeps its errno
+        tmp.write_bytes(data.tobytes())
     return path
 
 
@@ -79,6 +81,7 @@ def _encode_video(path: Path, frames: np.ndarray, fps: float) -> None:
         if pad_h or pad_w:
             frames = np.pad(frames, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
         height, width = frames.shape[1:3]
+        path.touch()  # a read-only or missing folder fails here with its errno, not as a codec
         fourcc = cv2.VideoWriter_fourcc(*_VIDEO_CODECS[suffix])
         with _stderr_silenced():  # FFmpeg prints a warning about the VP8 tag, then maps it itself
             writer = cv2.VideoWriter(str(path), fourcc, float(fps), (width, height))

@@ -55,6 +55,40 @@ def scene_frame_indices(recon: Reconstruction, num_scene_frames: int) -> tuple[l
     return indices, origin
 
 
+MAX_FRAME_DIFFERENCE = 8.0  # mean |recon - scene frame| (0..255): same scene ~2 after another
+# resampler; other movi-e scenes 40-70 apart, the test box scenes of another seed 12
+MAX_ASPECT_DIFFERENCE = 0.05  # relative difference of height/width between reconstruction and scene
+
+
+def check_same_scene(recon: Reconstruction, scene: Scene, indices: list[int]) -> None:
+    """`UserError` unless `recon` is a reconstruction of `scene`: the input size its report.json
+    records, the aspect ratio and the frames it used must match the scene's."""
+    inputs = recon.report.get("inputs", {})
+    hw, (h, w) = scene.image_size, recon.depth.shape[1:3]
+    source_hw = inputs.get("source_hw")
+    if source_hw is not None and tuple(source_hw) != tuple(hw):
+        raise UserError(f"the reconstruction was made from a {source_hw[1]}x{source_hw[0]} video "
+                        f"(report.json), the scene is {hw[1]}x{hw[0]}; pick the scene that was "
+                        "reconstructed (--gt, --scene-index)")
+    crop = inputs.get("crop_xy"), inputs.get("resized_hw")
+    if None in crop and abs((h / w) / (hw[0] / hw[1]) - 1) > MAX_ASPECT_DIFFERENCE:
+        raise UserError(f"the reconstruction is {w}x{h} pixels, the scene {hw[1]}x{hw[0]}: their "
+                        "aspect ratios differ, so the pixels cannot be compared; reconstruct the "
+                        "whole frame of this scene")
+    if scene.rgb is None or not recon.frames.any():
+        return
+    frames = scene.rgb[indices]
+    if None not in crop:  # the same resize and centre crop as the reconstruction's input
+        (x, y), (rh, rw) = crop[0], crop[1]
+        frames = _resize(frames, (rh, rw), cv2.INTER_AREA)[:, y:y + h, x:x + w]
+    frames = _resize(frames, (h, w), cv2.INTER_AREA)
+    difference = float(np.abs(frames.astype(np.float32) - recon.frames).mean())
+    if difference > MAX_FRAME_DIFFERENCE:
+        raise UserError(f"the reconstruction's frames differ from those of scene {scene.meta.get('scene_index', '?')} "
+                        f"(mean difference {difference:.0f} of 255): it reconstructs another video; "
+                        "pick the scene that was reconstructed (--gt, --scene-index)")
+
+
 def pick_scene(source: str, index: int) -> Scene:
     """The `index`-th scene (0-based, in reading order) of a shard source."""
     if index < 0:
@@ -75,6 +109,7 @@ def evaluate(recon: Reconstruction, scene: Scene, max_depth: float | None = None
     """All metrics of a reconstruction against its scene (see eval_metrics for conventions)."""
     check_reconstruction(recon)
     indices, origin = scene_frame_indices(recon, scene.num_frames)
+    check_same_scene(recon, scene, indices)
     hw = scene.image_size
     result = {
         "frame_indices": indices,

@@ -1,5 +1,10 @@
 """`c4d run VIDEO [key=value ...] --out DIR --pointmaps CKPT [--tracker CKPT] [--flow dis|raft:PATH]`.
 
+Every flag but `--out`, `--preset` and `--config` stands for a key of configs/c4d (`--pointmaps`
+is `pointmaps.checkpoint`, `--tracker` is `tracker.checkpoint`, ...; see `RUN_FLAGS`), so a YAML
+file given with `--config` (or as `--preset`) can hold a whole run; a key set both by its flag
+and by `key=value` is an error. OUT keeps the resolved config as `config.yaml`.
+
 Reconstructs a monocular video with C4D: DUSt3R preprocessing of the frames, pairwise pointmaps
 from a DUSt3R/MASt3R/MonST3R checkpoint, optical flow, DynPT tracks (or, without a tracker, the
 flow-only motion mask and no trajectory smoothing), the two-stage optimisation, and the output
@@ -17,37 +22,53 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from c4d_core.config import load_config
+from c4d_core.config import flag_overrides, load_config, to_yaml
 from c4d_core.errors import UserError
+from c4d_core.files import write_text
 
 log = logging.getLogger("c4d.run")
+
+
+# flag (argparse dest) -> the config key it sets
+RUN_FLAGS = {"pointmaps": "pointmaps.checkpoint", "tracker": "tracker.checkpoint", "flow": "flow",
+             "size": "pointmaps.size", "stride": "video.stride", "max_frames": "video.max_frames",
+             "grid_size": "tracker.grid_size", "pointmap_batch": "pointmaps.batch"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("video", help="video file (mp4, avi, ...) or folder of frames (sorted by name)")
     parser.add_argument("--out", required=True, help="output folder (created; files of the C4D output table)")
-    parser.add_argument("--pointmaps", required=True, metavar="CKPT",
-                        help="DUSt3R / MASt3R / MonST3R checkpoint (.pth) for the pairwise pointmaps")
+    parser.add_argument("--pointmaps", metavar="CKPT", help="DUSt3R / MASt3R / MonST3R checkpoint (.pth) "
+                        "for the pairwise pointmaps (key pointmaps.checkpoint; required)")
     parser.add_argument("--tracker", metavar="CKPT", help="DynPT checkpoint from `c4d train`; without it "
-                        "the motion masks come from optical flow alone and stage 2 (PTS) is skipped")
-    parser.add_argument("--flow", default="dis", help="optical flow: 'dis', 'dis:fast' or 'raft:PATH' [dis]")
+                        "the motion masks come from optical flow alone and stage 2 (PTS) is skipped "
+                        "(key tracker.checkpoint)")
+    parser.add_argument("--flow", help="optical flow: 'dis', 'dis:fast' or 'raft:PATH' (key flow) [dis]")
     parser.add_argument("--preset", default="default", help="c4d config preset or YAML file [default]")
     parser.add_argument("--config", action="append", default=[], metavar="YAML",
                         help="extra config file merged over the preset (repeatable)")
     parser.add_argument("--size", type=int, help="network image size: long side (512) or 224 "
-                        "(default: the checkpoint's training size)")
-    parser.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame [1]")
-    parser.add_argument("--max-frames", type=int, help="use at most this many frames")
-    parser.add_argument("--grid-size", type=int, default=20,
-                        help="tracker query grid cell in pixels (a max-gradient + a random point per cell) [20]")
-    parser.add_argument("--pointmap-batch", type=int, default=0,
-                        help="image pairs per network pass (0 = from free GPU memory, 2 on CPU) [0]")
+                        "(key pointmaps.size; default: the checkpoint's training size)")
+    parser.add_argument("--stride", type=int, help="use every STRIDE-th frame (key video.stride) [1]")
+    parser.add_argument("--max-frames", type=int,
+                        help="use at most this many frames (key video.max_frames; default: all)")
+    parser.add_argument("--grid-size", type=int, help="tracker query grid cell in pixels (a max-gradient "
+                        "+ a random point per cell; key tracker.grid_size) [20]")
+    parser.add_argument("--pointmap-batch", type=int, help="image pairs per network pass (0 = from "
+                        "free GPU memory, 2 on CPU; key pointmaps.batch) [0]")
     parser.add_argument("overrides", nargs="*", metavar="key=value",
                         help="config overrides right after VIDEO, e.g. optim.stage1_iters=100 device=cuda")
 
 
-def _check_file(path: str | None, what: str, flag: str) -> None:
-    if path is not None and not Path(path).is_file():
+def load_run_config(args: argparse.Namespace):
+    """The c4d config of a run: preset, --config files, then key=value overrides and the flags."""
+    flags = {key: getattr(args, dest) for dest, key in RUN_FLAGS.items()}
+    overrides = [*args.overrides, *flag_overrides(flags, args.overrides)]
+    return load_config("c4d", args.preset, config_files=args.config, overrides=overrides)
+
+
+def _check_file(path: str, what: str, flag: str) -> None:
+    if path and not Path(path).is_file():
         raise UserError(f"{what} {path!r} does not exist; give the path of a local file with {flag}")
 
 
@@ -72,60 +93,64 @@ def run(args: argparse.Namespace) -> int:
     from c4d_pipeline.video_input import load_video_input
 
     # 1. Everything the user named, checked before any heavy work.
-    cfg = load_config("c4d", args.preset, config_files=args.config, overrides=args.overrides)
+    cfg = load_run_config(args)
     if not Path(args.video).exists():
         raise UserError(f"video {args.video!r} does not exist; pass a video file or a folder of frames")
-    _check_file(args.pointmaps, "pointmap checkpoint", "--pointmaps")
-    _check_file(args.tracker, "tracker checkpoint", "--tracker")
-    if args.grid_size < 1:
-        raise UserError(f"--grid-size must be at least 1, got {args.grid_size}")
+    if not cfg.pointmaps.checkpoint:
+        raise UserError("no pointmap checkpoint: give --pointmaps CKPT (or pointmaps.checkpoint=CKPT)")
+    _check_file(cfg.pointmaps.checkpoint, "pointmap checkpoint", "--pointmaps")
+    _check_file(cfg.tracker.checkpoint, "tracker checkpoint", "--tracker")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {str(out)!r} is a file; give a folder")
     seconds: dict[str, float] = {}
 
     start = time.perf_counter()
-    log.info("loading the pointmap network from %s", args.pointmaps)
-    source = Dust3rPointmaps.from_checkpoint(args.pointmaps, cfg.device, args.pointmap_batch, progress=True)
+    log.info("loading the pointmap network from %s", cfg.pointmaps.checkpoint)
+    source = Dust3rPointmaps.from_checkpoint(cfg.pointmaps.checkpoint, cfg.device, cfg.pointmaps.batch,
+                                             progress=True)
     tracker = None
-    if args.tracker:
+    if cfg.tracker.checkpoint:
         from dynpt.inference import load_tracker
 
-        log.info("loading the tracker from %s", args.tracker)
-        tracker = load_tracker(args.tracker, cfg.device)
+        log.info("loading the tracker from %s", cfg.tracker.checkpoint)
+        tracker = load_tracker(cfg.tracker.checkpoint, cfg.device)
     else:
         log.warning("no --tracker given: motion masks from the flow-only baseline (MonST3R-style), "
                     "and no trajectory smoothing (stage 2)")
-    flow = _FlowWithProgress(build_flow(args.flow, device=cfg.device))
+    flow = _FlowWithProgress(build_flow(cfg.flow, device=cfg.device))
     seconds["load_models"] = time.perf_counter() - start
 
     # 2. Frames at the network's resolution.
     start = time.perf_counter()
-    size = args.size or source.image_size
-    video = load_video_input(args.video, size=size, stride=args.stride, max_frames=args.max_frames)
+    size = cfg.pointmaps.size or source.image_size
+    video = load_video_input(args.video, size=size, stride=cfg.video.stride,
+                             max_frames=cfg.video.max_frames or None)
     frames = video.frames
     T, H, W = frames.shape[:3]
     seconds["read_video"] = time.perf_counter() - start
     log.info("%d frames of %dx%d (source %dx%d)", T, W, H, video.preprocessing.source_hw[1],
              video.preprocessing.source_hw[0])
 
+    write_text(out / "config.yaml", to_yaml(cfg))  # every input read: what runs now
+
     # 3. Tracks on the same frames.
     tracks = None
     if tracker is not None:
         start = time.perf_counter()
-        log.info("tracking points (grid %d px)", args.grid_size)
-        tracks = tracker.track(frames, grid_size=args.grid_size, seed=int(cfg.seed))
+        log.info("tracking points (grid %d px)", cfg.tracker.grid_size)
+        tracks = tracker.track(frames, grid_size=cfg.tracker.grid_size, seed=int(cfg.seed))
         seconds["tracking"] = time.perf_counter() - start
 
     # 4. Pointmaps, flow, masks, optimisation, files.
-    log.info("reconstructing: pointmaps, optical flow (%s), motion masks, optimisation", args.flow)
+    log.info("reconstructing: pointmaps, optical flow (%s), motion masks, optimisation", cfg.flow)
     inputs = {
-        "video": str(Path(args.video).resolve()), "pointmaps_checkpoint": str(Path(args.pointmaps).resolve()),
-        "tracker_checkpoint": str(Path(args.tracker).resolve()) if args.tracker else None,
-        "flow": args.flow, "network_size": size, "stride": args.stride, "max_frames": args.max_frames,
-        "frame_indices": video.source_indices.tolist(),
+        "video": str(Path(args.video).resolve()),
+        "pointmaps_checkpoint": str(Path(cfg.pointmaps.checkpoint).resolve()),
+        "tracker_checkpoint": str(Path(cfg.tracker.checkpoint).resolve()) if cfg.tracker.checkpoint else None,
+        "network_size": size, "frame_indices": video.source_indices.tolist(),
         "source_hw": list(video.preprocessing.source_hw), "resized_hw": list(video.preprocessing.resized_hw),
-        "crop_xy": list(video.preprocessing.crop_xy), "grid_size": args.grid_size,
+        "crop_xy": list(video.preprocessing.crop_xy),
         "seconds_before_reconstruction": seconds,
     }
     rec = reconstruct(frames, source, flow, tracks, cfg, out, inputs=inputs)

@@ -21,6 +21,8 @@ from tqdm import tqdm
 from c4d_core.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rNet, load_dust3r
 from c4d_pipeline.pointmaps import PairwisePointmaps, sanitize
+from dynpt.device import (autocast, bf16_supported, free_memory, inference_autocast_dtype, pair_batch_size,
+                          pin_memory)
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +55,7 @@ class Dust3rPointmaps:
                  progress: bool = False):
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.net = net.to(self.device).eval()
+        self.amp_dtype = inference_autocast_dtype(self.device.type, bf16_supported(self.device))
         if batch_size < 0:
             raise UserError(f"pointmap batch size must be >= 0 (0 = automatic), got {batch_size}")
         self.batch_size = batch_size
@@ -74,23 +77,16 @@ class Dust3rPointmaps:
         return self.net.cfg.img_size
 
     def _auto_batch(self, height: int, width: int) -> int:
-        if self.device.type != "cuda":
-            return 2
-        free, _ = torch.cuda.mem_get_info(self.device)
         weights = sum(p.numel() * p.element_size() for p in self.net.parameters())
-        budget = 0.7 * free - weights * 0.1
-        return int(np.clip(budget // pair_memory_bytes(self.net, height, width), 1, 64))
+        return pair_batch_size(free_memory(self.device), weights,
+                               pair_memory_bytes(self.net, height, width))
 
     @torch.no_grad()
     def _run(self, images: torch.Tensor, idx_i: np.ndarray, idx_j: np.ndarray):
         """Network outputs for one batch of pairs, moved to the CPU as float32 numpy arrays."""
         img1 = images[idx_i].to(self.device, non_blocking=True)  # (b,3,H,W)
         img2 = images[idx_j].to(self.device, non_blocking=True)
-        if self.device.type == "cuda":
-            dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
-            with torch.autocast("cuda", dtype=dtype):
-                outputs = self.net(img1, img2)
-        else:
+        with autocast(self.device.type, self.amp_dtype):
             outputs = self.net(img1, img2)
         return [o.float().cpu().numpy() for o in outputs]
 
@@ -108,7 +104,7 @@ class Dust3rPointmaps:
         if len(edges) and (edges.min() < 0 or edges.max() >= T):
             raise UserError(f"pointmap pairs refer to frames outside 0..{T - 1}")
         images = to_network_input(frames)  # (T,3,H,W)
-        if self.device.type == "cuda":
+        if pin_memory(self.device.type):
             images = images.pin_memory()
         E = len(edges)
         out = {k: np.empty((E, H, W, 3), np.float32) for k in ("pts_i", "pts_j")}
@@ -123,7 +119,7 @@ class Dust3rPointmaps:
             except torch.cuda.OutOfMemoryError:
                 if batch == 1:
                     raise UserError(f"one {W}x{H} image pair does not fit in GPU memory; use a smaller "
-                                    "video size or run on the CPU (--device cpu)") from None
+                                    "network size (--size 224) or run on the CPU (device=cpu)") from None
                 batch = max(1, batch // 2)
                 torch.cuda.empty_cache()
                 log.info("pointmaps: out of GPU memory, batch size lowered to %d pairs", batch)

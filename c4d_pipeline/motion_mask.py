@@ -40,6 +40,7 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
+from c4d_core.config import defaults_from
 from c4d_core.errors import UserError
 from c4d_core.geometry import pixel_grid, project, unproject_depth_map
 from c4d_pipeline.flow import scene_point_motion
@@ -50,19 +51,21 @@ Pair = tuple[int, int]
 
 
 @dataclass(frozen=True)
+@defaults_from("c4d", "motion_mask.c4d")
 class MotionMaskConfig:
-    """Settings of the correspondence-guided mask (configs/c4d: `motion_mask`)."""
+    """Settings of the correspondence-guided mask: the keys of configs/c4d `motion_mask.c4d`,
+    where each is explained; the defaults are that file's (the schema's)."""
 
-    mobility_threshold: float = 0.5  # a track is static at t where moving[t] < this
-    min_confidence: float = 0.0  # ... and confidence[t] >= this
-    sampson_threshold_px: float = 0.5  # dynamic where the Sampson distance exceeds this (pixels)
-    min_static_points: int = 16  # fewer -> fall back to all flow correspondences
-    fallback_grid_points: int = 2048  # about this many grid correspondences in the fallback
-    still_camera_px: float = 0.25  # 90 % of static points move less: the camera stands still
-    seed: int = 0  # seed of LMedS's random sampling
-    max_pair_offset: int = 0  # use only graph pairs |i - j| <= this (0: all pairs, as the paper)
-    noise_sigmas: float = 4.0  # threshold >= this many robust sigmas of the static points' distances
-    judge_out_of_view: bool = False  # False: pixels whose flow leaves frame t' are never dynamic
+    mobility_threshold: float
+    min_confidence: float
+    sampson_threshold_px: float
+    min_static_points: int
+    fallback_grid_points: int
+    still_camera_px: float
+    seed: int
+    max_pair_offset: int
+    noise_sigmas: float
+    judge_out_of_view: bool
 
 
 @dataclass

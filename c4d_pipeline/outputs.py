@@ -11,6 +11,7 @@ OUT/
   tracks_3d.npz              tracks_world (T,N,3), valid (T,N)
   scene.ply                  coloured points: static background once, dynamic points per frame
   report.json                inputs, config, per-stage seconds, loss curves, versions
+  config.yaml                the resolved config (`c4d run` writes it before the reconstruction starts)
 Every file is first written under a temporary name and then renamed, so an interrupted run never
 leaves a half-written file under a final name.
 """

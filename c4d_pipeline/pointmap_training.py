@@ -34,10 +34,11 @@ from omegaconf import OmegaConf
 
 from c4d_core.config import to_dict
 from c4d_core.errors import UserError
-from c4d_core.files import atomic_path
+from c4d_core.files import append_line, write_text
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from datagen.shards import read_scenes
+from dynpt.checkpoint import save_atomic
 
 log = logging.getLogger(__name__)
 
@@ -138,9 +139,7 @@ def constructor_string(cfg: Dust3rConfig, image_size: tuple[int, int]) -> str:
 def save_official(net: Dust3rNet, image_size: tuple[int, int], path: Path) -> Path:
     """Write `net` as an official DUSt3R-layout checkpoint (temporary name, then rename)."""
     args = argparse.Namespace(model=constructor_string(net.cfg, image_size))
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a handle: no temporary name inside
-        torch.save({"model": net.state_dict(), "args": args}, fh)
-    return path
+    return save_atomic(path, {"model": net.state_dict(), "args": args})
 
 
 # --- training -----------------------------------------------------------------------------------
@@ -164,8 +163,7 @@ def train_pointmap_net(cfg, resume: bool = False) -> dict:
     if state_path.exists() and not resume:
         raise UserError(f"{out} already holds a pointmap training run; pass --resume to continue "
                         "it or choose another train.out_dir")
-    out.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, out / "config.yaml")
+    write_text(out / "config.yaml", OmegaConf.to_yaml(cfg))
     torch.manual_seed(int(cfg.seed))
     scenes = load_scenes(list(cfg.data.sources), int(cfg.data.max_scenes))
     image_size = scenes[0].image_size
@@ -193,34 +191,31 @@ def train_pointmap_net(cfg, resume: bool = False) -> dict:
     net.train()
     started, recent = time.time(), []
     stop = min(steps, step + int(cfg.train.stop_after)) if int(cfg.train.stop_after) > 0 else steps
-    with open(out / "log.jsonl", "a") as log_file:
-        while step < stop:
-            batch = sample_batch(scenes, rng, int(cfg.train.batch_size), int(cfg.data.max_gap),
-                                 float(cfg.data.hflip_prob))
-            pred1, conf1, pred2, conf2 = net(batch["img1"], batch["img2"])
-            loss, stats = confidence_regression_loss(pred1, conf1, pred2, conf2, batch["pts1"],
-                                                     batch["pts2"], float(cfg.loss.alpha))
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), float(cfg.train.grad_clip))
-            optimizer.step()
-            schedule.step()
-            step += 1
-            recent.append(stats["regression"])
-            if step % int(cfg.train.log_every) == 0 or step == stop:
-                line = {"step": step, **stats, "lr": schedule.get_last_lr()[0],
-                        "seconds": round(time.time() - started, 1)}
-                log_file.write(json.dumps(line) + "\n")
-                log_file.flush()
-                log.info("pointmaps step %d/%d  loss %.4f  regression %.4f", step, steps,
-                         stats["loss"], float(np.mean(recent)))
-                recent = []
-            if step % int(cfg.train.ckpt_every) == 0 or step == stop:
-                state = {"model": net.state_dict(), "optimizer": optimizer.state_dict(),
-                         "schedule": schedule.state_dict(), "step": step,
-                         "rng": rng.bit_generator.state, "config": to_dict(cfg)}
-                with atomic_path(state_path) as tmp, open(tmp, "wb") as fh:
-                    torch.save(state, fh)
+    while step < stop:
+        batch = sample_batch(scenes, rng, int(cfg.train.batch_size), int(cfg.data.max_gap),
+                             float(cfg.data.hflip_prob))
+        pred1, conf1, pred2, conf2 = net(batch["img1"], batch["img2"])
+        loss, stats = confidence_regression_loss(pred1, conf1, pred2, conf2, batch["pts1"],
+                                                 batch["pts2"], float(cfg.loss.alpha))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), float(cfg.train.grad_clip))
+        optimizer.step()
+        schedule.step()
+        step += 1
+        recent.append(stats["regression"])
+        if step % int(cfg.train.log_every) == 0 or step == stop:
+            line = {"step": step, **stats, "lr": schedule.get_last_lr()[0],
+                    "seconds": round(time.time() - started, 1)}
+            append_line(out / "log.jsonl", json.dumps(line))
+            log.info("pointmaps step %d/%d  loss %.4f  regression %.4f", step, steps,
+                     stats["loss"], float(np.mean(recent)))
+            recent = []
+        if step % int(cfg.train.ckpt_every) == 0 or step == stop:
+            state = {"model": net.state_dict(), "optimizer": optimizer.state_dict(),
+                     "schedule": schedule.state_dict(), "step": step,
+                     "rng": rng.bit_generator.state, "config": to_dict(cfg)}
+            save_atomic(state_path, state)
     if step < steps:
         log.info("stopped at step %d of %d; continue with --resume", step, steps)
         return {"checkpoint": None, "steps": step}

@@ -206,6 +206,16 @@ class AssetLibrary:
                 raise UserError("no usable mesh among the assets of this split (see the warnings "
                                 "above): add textured OBJ/GLB/GLTF meshes to `assets_dir`")
 
+    def check_backgrounds(self) -> None:
+        """Decode every background image of the folder once (both splits); `UserError` listing
+        all unreadable ones, so a bad file is found when the generator starts, not mid-run."""
+        bad = [path for path in self._background_paths.values()
+               if cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR) is None]
+        if bad:
+            names = ", ".join(repr(str(p)) for p in bad[:10]) + (" ..." if len(bad) > 10 else "")
+            raise UserError(f"{len(bad)} background image(s) cannot be read: {names}; remove them "
+                            "or convert them to PNG/JPEG/HDR")
+
     def background(self, background_id: str, max_width: int = 2048) -> np.ndarray:
         """An equirectangular background as uint8 (h,w,3); HDRIs are tone-mapped."""
         if background_id not in self._images:

@@ -5,8 +5,11 @@
 Scene i of seed S is the same whatever the worker count, task split or number of reruns. Each
 shard is written under a temporary name and renamed when complete, so rerunning the same command
 after a crash (or with more tasks of a job array) only generates the missing shards. The dataset's
-identity (config, counts, generator version) is kept in `OUT/dataset-{split}.json`; a rerun into
-the same directory with a different config is refused.
+identity (config, counts, generator version) is kept in `OUT/dataset-{split}.json`, the resolved
+config also in `OUT/config-{split}.yaml`; a rerun into the same directory with a different
+config is refused once a shard of the first is complete (before that the folder holds no data of
+it and the new settings replace the old). Every value is range-checked when the config loads,
+before anything is created.
 """
 
 from __future__ import annotations
@@ -27,9 +30,10 @@ from typing import Any, Iterator
 from tqdm import tqdm
 
 import datagen
-from c4d_core.config import available_presets, load_config, parse_overrides, to_dict
+from c4d_core.config import available_presets, flag_overrides, load_config, to_dict, to_yaml
 from c4d_core.errors import UserError
-from c4d_core.files import disk_error, write_json
+from c4d_core.files import disk_error, write_json, write_text
+from c4d_core.schema import RULES
 from c4d_core.system import require_egl
 from datagen.jobs import SHARD_PATTERN, ShardPlan, resolve_task
 from datagen.shards import FORMAT_VERSION, KEY_PATTERN, ShardWriter, encode_scene, scene_key
@@ -70,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def parse_resolution(text: str) -> list[int]:
-    """`256` -> [256, 256]; `384x512` -> [384, 512] (height x width)."""
+    """`256` -> [256, 256]; `384x512` -> [384, 512] (height x width); the range is the schema's."""
     parts = text.lower().split("x")
     try:
         size = [int(p) for p in parts]
@@ -78,31 +82,22 @@ def parse_resolution(text: str) -> list[int]:
         size = []
     if len(parts) == 1:
         size = size * 2
-    if len(size) != 2 or min(size) < 8:
-        raise UserError(
-            f"--resolution {text!r} must be `S` or `HxW` with sizes of at least 8, e.g. 384x512"
-        )
+    rule = RULES["datagen"]["resolution"]
+    if len(size) != 2 or not rule.accepts(size):
+        raise UserError(f"--resolution {text!r} must be `S` or `HxW` (e.g. 384x512), each side an "
+                        f"integer in [{rule.low:.0f}, {rule.high:.0f}]")
     return size
 
 
-def flag_overrides(args: argparse.Namespace) -> list[str]:
+def datagen_flag_overrides(args: argparse.Namespace) -> list[str]:
     """The `key=value` overrides the named flags stand for; a key set twice is an error."""
-    flags = {
+    return flag_overrides({
         "seed": args.seed,
         "frames": args.frames,
         "resolution": parse_resolution(args.resolution) if args.resolution else None,
         "split": args.split,
         "assets_dir": args.assets,
-    }
-    given = parse_overrides(args.overrides)
-    overrides = []
-    for key, value in flags.items():
-        if value is None:
-            continue
-        if key in given:
-            raise UserError(f"`{key}` is set both by a flag and by `{key}=...`; give it once")
-        overrides.append(f"{key}={json.dumps(value)}")
-    return overrides
+    }, args.overrides)
 
 
 def dataset_record(cfg, plan: ShardPlan, preset: str) -> dict[str, Any]:
@@ -123,14 +118,20 @@ def dataset_record(cfg, plan: ShardPlan, preset: str) -> dict[str, Any]:
     }
 
 
-def claim_directory(out: Path, record: dict[str, Any]) -> None:
-    """Create OUT and its dataset file, or check that the existing one describes this dataset."""
+def claim_directory(out: Path, record: dict[str, Any], plan: ShardPlan) -> None:
+    """Create OUT and its dataset file (and the resolved config as YAML), or check that the
+    existing one describes this dataset.
+
+    A dataset file of other settings is only replaced while OUT holds no complete shard of it
+    (a run that failed before its first shard claimed nothing); otherwise it is refused.
+    """
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise disk_error(out, exc) from exc
     path = out / f"dataset-{record['split']}.json"
-    if path.is_file():
+    holds_data = any(out.glob(f"{plan.split}-*.tar"))  # finished shards of SHARD_PATTERN
+    if path.is_file() and holds_data:
         try:
             stored = json.loads(path.read_text())
         except (OSError, ValueError) as exc:
@@ -150,6 +151,7 @@ def claim_directory(out: Path, record: dict[str, Any]) -> None:
             )
         return
     write_json(path, record)
+    write_text(out / f"config-{record['split']}.yaml", to_yaml(record["config"]))
 
 
 # --- scene generation, in this process or in spawned workers ------------------------------------
@@ -157,9 +159,21 @@ def claim_directory(out: Path, record: dict[str, Any]) -> None:
 _worker: dict[str, Any] = {}
 
 
-def _init_worker(cfg) -> None:
-    """Worker initializer: keep the config; the assets load with the first scene."""
+def _exit_with_parent(parent: int) -> None:
+    """Watch (in a daemon thread) for the parent process to die, then end this worker at once:
+    an orphaned worker would otherwise sit idle holding its memory (and the resource tracker)."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
+
+
+def _init_worker(cfg, parent: int) -> None:
+    """Worker initializer: keep the config (the assets load with the first scene); exit when the
+    parent `parent` dies."""
+    import threading
+
     _worker["cfg"] = cfg
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
 
 
 def _make_sample(cfg, scene_index: int, assets) -> dict[str, Any]:
@@ -196,7 +210,7 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
         return
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
-                             initargs=(cfg,)) as pool:
+                             initargs=(cfg, os.getpid())) as pool:
         todo = iter(indices)
         pending = deque(pool.submit(_worker_sample, i) for i in islice(todo, 2 * workers))
         try:
@@ -217,7 +231,7 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
 
 
 def run(args: argparse.Namespace) -> int:
-    overrides = list(args.overrides) + flag_overrides(args)
+    overrides = list(args.overrides) + datagen_flag_overrides(args)
     cfg = load_config("datagen", args.preset, args.config, overrides)
     plan = ShardPlan(str(cfg.split), args.num_scenes, args.scenes_per_shard)
     task_index, num_tasks = resolve_task(args.task_index, args.num_tasks)
@@ -226,8 +240,8 @@ def run(args: argparse.Namespace) -> int:
     require_egl()
     from datagen.assets import load_asset_library
 
-    load_asset_library(cfg)  # cheap; fails early on an unreadable assets or backgrounds folder
-    claim_directory(args.out, dataset_record(cfg, plan, str(args.preset)))
+    load_asset_library(cfg).check_backgrounds()  # fails early on unreadable folders and images
+    claim_directory(args.out, dataset_record(cfg, plan, str(args.preset)), plan)
 
     shards = plan.shards_of_task(task_index, num_tasks)
     todo = plan.missing_shards(args.out, shards)
@@ -255,6 +269,12 @@ def run(args: argparse.Namespace) -> int:
                         assert sample["__key__"] == scene_key(plan.split, index), "out of order"
                         writer.write(sample)
                         bar.update()
+    except KeyboardInterrupt:
+        if workers > 1:
+            log.warning("interrupted: waiting for the %d worker(s) to finish the scene each is "
+                        "rendering; the shards already written are kept and rerunning the same "
+                        "command continues", workers)
+        raise
     finally:
         samples.close()  # on an error or Ctrl-C: cancel queued scenes, shut the workers down
     seconds = time.perf_counter() - start

@@ -9,6 +9,7 @@ docs/FORMAT.md and docs/perf/datagen_io.md):
 - `segmentation.png`: (T*H, W) 8-bit PNG (16-bit when an id exceeds 255), decoded to int32.
 - every other array: `<field>.npy.bsz`, lossless for any dtype (see `encode_array`).
 - `meta.json`, `objects.json`: UTF-8 JSON.
+- `checksums.json` (format 3): the CRC-32 of every other member of the sample, checked on read.
 A field that is `None` has no member and decodes to `None`.
 """
 
@@ -30,7 +31,7 @@ from c4d_core.errors import UserError
 from c4d_core.files import disk_error, json_default
 from datagen.scene import Scene
 
-FORMAT_VERSION = 2  # 2: rgb as raw `rgb.npy` (decodes ~50x faster than 1's PNG, docs/perf)
+FORMAT_VERSION = 3  # 3: a `checksums.json` member; 2: rgb as raw `rgb.npy` (~50x faster than PNG)
 ZLIB_LEVEL = 1  # level 6 saves 3-7 % on float labels at half the encode speed (docs/perf)
 PNG_LEVEL = 1
 KEY_PATTERN = "{split}-{scene_index:08d}"
@@ -57,6 +58,10 @@ JSON_FIELDS = ("meta", "objects")
 SPECIAL_MEMBERS = {"rgb": "rgb.npy", "segmentation": "segmentation.png"}
 FORMAT_1_RGB = "rgb.png"  # format 1's rgb member, still read
 ALWAYS_READ = ("intrinsics", "meta")  # `decode_scene` needs these whatever fields are asked for
+# Fields every datagen scene has (docs/FORMAT.md): a sample without one of them is incomplete.
+REQUIRED_FIELDS = ("rgb", "intrinsics", "cam_to_world", "objects", "tracks", "occluded",
+                   "query_frame", "track_object", "meta")
+CHECKSUMS = "checksums.json"  # {"crc32": {member suffix: 8 hex digits}}, before `meta.json`
 
 
 def member_suffix(name: str) -> str:
@@ -218,28 +223,78 @@ def encode_scene(scene: Scene, key: str) -> dict[str, Any]:
         else:
             data = encode_array(value)
         sample[member_suffix(name)] = data
+    meta = sample.pop(member_suffix("meta"), None)
+    sums = {suffix: crc32(data) for suffix, data in sample.items() if suffix != "__key__"}
+    if meta is not None:
+        sums[member_suffix("meta")] = crc32(meta)
+    sample[CHECKSUMS] = to_json_bytes({"crc32": sums})
+    if meta is not None:
+        sample[member_suffix("meta")] = meta  # still the last member
     return sample
+
+
+def crc32(data: bytes) -> str:
+    """The CRC-32 (zlib's, as in gzip and zip) of `data` as 8 hex digits; ~0.5 ms per MB."""
+    return f"{zlib.crc32(data):08x}"
+
+
+def verify_checksums(sample: dict[str, Any]) -> bool:
+    """Check the members of `sample` against its `checksums.json`; False if it has none (format 2).
+
+    Members not read (skipped by `iter_samples(fields=...)`) are only checked for presence, via
+    the `__members__` list `iter_samples` adds. Raises `UserError` naming the sample and member
+    on a missing member or a checksum mismatch.
+    """
+    if CHECKSUMS not in sample:
+        return False
+    key, where = sample.get("__key__", "?"), _where(sample)
+    try:
+        sums = json.loads(bytes(sample[CHECKSUMS]).decode("utf-8"))["crc32"]
+        sums = {str(k): str(v) for k, v in sums.items()}
+    except (ValueError, TypeError, KeyError, AttributeError, UnicodeDecodeError) as exc:
+        raise UserError(f"scene {key!r}{where}: member {CHECKSUMS!r} is corrupt ({exc}); "
+                        f"{REGENERATE}") from exc
+    present = set(sample.get("__members__", ())) | {k for k in sample if not k.startswith("__")}
+    for suffix, expected in sums.items():
+        if suffix not in present:
+            raise UserError(f"scene {key!r}{where} lacks its member {suffix!r} (deleted from the "
+                            f"shard?); {REGENERATE}")
+        if suffix in sample and crc32(sample[suffix]) != expected:
+            raise UserError(f"scene {key!r}{where}: member {suffix!r} fails its CRC-32 check "
+                            f"(stored {expected}, read {crc32(sample[suffix])}), so the shard is "
+                            f"damaged; {REGENERATE}")
+    return True
+
+
+REGENERATE = "regenerate this shard (delete it and rerun the same `c4d datagen` command)"
+
+
+def _where(sample: dict[str, Any]) -> str:
+    return f" in {sample['__url__']}" if "__url__" in sample else ""
 
 
 def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) -> Scene:
     """The `Scene` of a webdataset sample (raw bytes per member, as `encode_scene` makes them).
 
     `fields`: decode only these Scene fields (the others are None), e.g. to skip depth and flow
-    when training. Raises `UserError` naming the sample key if a member is missing or corrupt.
+    when training. The members present are checked against `checksums.json` where the sample has
+    one. Raises `UserError` naming the sample key (and shard) if a member is missing or corrupt.
     """
     key = sample.get("__key__", "?")
-    where = f" in {sample['__url__']}" if "__url__" in sample else ""
+    where = _where(sample)
     wanted = set(Scene.field_names()) if fields is None else set(fields)
     unknown = wanted - set(Scene.field_names())
     if unknown:
         raise UserError(
             f"unknown Scene fields {sorted(unknown)}; choose from {Scene.field_names()}"
         )
-    for required in ("intrinsics", "meta"):
-        if member_suffix(required) not in sample:
+    verify_checksums(sample)
+    for required in REQUIRED_FIELDS:
+        if required != "rgb" and (required in ALWAYS_READ or required in wanted) \
+                and member_suffix(required) not in sample:
             raise UserError(
                 f"scene {key!r}{where} has no {member_suffix(required)!r} member, so the shard "
-                "is truncated or was not written by `c4d datagen`; regenerate it"
+                f"is truncated, damaged or was not written by `c4d datagen`; {REGENERATE}"
             )
     if "rgb" in wanted and member_suffix("rgb") not in sample and FORMAT_1_RGB not in sample:
         raise UserError(
@@ -269,10 +324,8 @@ def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) ->
             else:
                 values[name] = decode_array(data)
     except (ValueError, TypeError, zlib.error, UnicodeDecodeError) as exc:
-        raise UserError(
-            f"scene {key!r}{where}: member {suffix!r} is corrupt ({exc}); "
-            "regenerate this shard (delete it and rerun the same `c4d datagen` command)"
-        ) from exc
+        raise UserError(f"scene {key!r}{where}: member {suffix!r} is corrupt ({exc}); {REGENERATE}"
+                        ) from exc
     return Scene(**values)
 
 
@@ -392,10 +445,12 @@ def list_shards(source: str | Path | Sequence[str | Path], split: str | None = N
 
 
 def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iterator[dict[str, Any]]:
-    """Webdataset samples of one shard, in tar order, each with `__key__` and `__url__`.
+    """Webdataset samples of one shard, in tar order, each with `__key__`, `__url__` and
+    `__members__` (the suffixes of all its members, read or not).
 
     `fields`: read only the members of these Scene fields (and those `decode_scene` always needs);
-    the others are skipped by seeking past them, not read. Default: every member.
+    the others are skipped by seeking past them, not read (`checksums.json` is always read).
+    Default: every member.
     Raises `UserError` naming the shard and the sample key if the tar is truncated or corrupt.
     """
     shard = str(shard)
@@ -414,7 +469,8 @@ def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iter
                     sample = {}
                 sample.setdefault("__key__", key)
                 sample.setdefault("__url__", shard)
-                if wanted is None or suffix.partition(".")[0] in wanted:
+                sample.setdefault("__members__", []).append(suffix)
+                if wanted is None or suffix == CHECKSUMS or suffix.partition(".")[0] in wanted:
                     sample[suffix] = tar.extractfile(member).read()
             end = tar.offset  # where the end-of-archive marker (two zero blocks) must follow
         with open(shard, "rb") as f:

@@ -12,8 +12,11 @@ Layout (a `torch.save`d dict, readable with `torch.load(weights_only=True)`):
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
+import pickle
+import re
 from pathlib import Path
 from typing import Mapping
 
@@ -21,12 +24,26 @@ import torch
 from torch import nn
 
 from c4d_core.errors import UserError
-from c4d_core.files import atomic_path
+from c4d_core.files import atomic_path, disk_error
 from dynpt.model import DynPT, build_model, plain_config
 
 log = logging.getLogger(__name__)
 
 FORMAT = "dynpt-checkpoint-v1"
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+class CheckpointUnreadable(UserError):
+    """The file exists but cannot be read as a checkpoint (truncated, damaged, another format)."""
+
+
+def _reason(exc: Exception) -> str:
+    """A short reason for a failed `torch.load`, without PyTorch's advice to re-run it with
+    weights_only=False (unsafe for a file of unknown origin) or terminal colour codes."""
+    if isinstance(exc, pickle.UnpicklingError) and "weights_only" in str(exc):
+        return "it holds Python objects other than tensors and plain values"
+    first = _ANSI.sub("", str(exc)).strip().splitlines()[0] if str(exc).strip() else ""
+    return first[:200] or type(exc).__name__
 
 
 def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dict | None = None) -> Path:
@@ -35,8 +52,22 @@ def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dic
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     payload = {"format": FORMAT, "config": model.config, "model": state, "step": int(step),
                "extra": extra or {}}
+    return save_atomic(path, payload)
+
+
+def save_atomic(path: str | os.PathLike, payload) -> Path:
+    """`torch.save(payload)` to `path` atomically; a failed write (disk full) is a `UserError`."""
+    path = Path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a handle: no temporary name inside
-        torch.save(payload, fh)
+        try:
+            torch.save(payload, fh)
+        except RuntimeError as exc:  # PyTorch's writer turns the OSError of a full disk into this
+            cause = exc.__cause__ or exc.__context__
+            if isinstance(cause, OSError) and cause.errno is not None:
+                raise disk_error(path, cause) from exc
+            if "write" not in str(exc).lower():
+                raise
+            raise disk_error(path, OSError(errno.ENOSPC, "the file could not be written")) from exc
     return path
 
 
@@ -48,8 +79,7 @@ def read_tensor_file(path: Path, kind: str, missing_hint: str, damaged_hint: str
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise UserError(f"cannot read {str(path)!r} as a {kind} checkpoint ({first}); {damaged_hint}") from exc
+        raise UserError(f"cannot read {str(path)!r} as a {kind} checkpoint ({_reason(exc)}); {damaged_hint}") from exc
 
 
 def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -> dict:
@@ -59,11 +89,24 @@ def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -
     architecture difference from the stored config is a `UserError` naming the keys.
     """
     path = Path(path)
-    ckpt = read_tensor_file(path, "DynPT", "pass the path of a DynPT checkpoint written by `c4d train`",
-                            "it is truncated or not a file written by `c4d train`")
+    if path.is_dir():
+        inside = sorted(p.name for p in path.glob("*.pt")) or sorted(
+            str(p.relative_to(path)) for p in path.glob("checkpoints/*.pt"))
+        hint = f" (it holds {', '.join(inside[:3])})" if inside else ""
+        raise UserError(f"checkpoint {str(path)!r} is a folder, not a file{hint}; pass the path "
+                        "of a checkpoint file, e.g. RUN/checkpoints/best.pt")
+    if not path.is_file():
+        raise UserError(f"checkpoint {str(path)!r} does not exist; pass the path of a DynPT "
+                        "checkpoint written by `c4d train`")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
+        raise CheckpointUnreadable(f"cannot read {str(path)!r} as a DynPT checkpoint "
+                                   f"({_reason(exc)}); it is truncated or not a file written by "
+                                   "`c4d train`") from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         found = ckpt.get("format", "no format tag") if isinstance(ckpt, dict) else type(ckpt).__name__
-        raise UserError(f"{str(path)!r} is not a DynPT checkpoint (expected format {FORMAT!r}, found "
+        raise CheckpointUnreadable(f"{str(path)!r} is not a DynPT checkpoint (expected format {FORMAT!r}, found "
                         f"{found!r}); DUSt3R/MASt3R files go to model.encoder_3d.checkpoint instead")
     if model_cfg is not None:
         check_config(ckpt["config"], model_cfg, path)

@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 from c4d_core.config import load_config
+from c4d_core.errors import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,14 +34,21 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_config("dynpt", args.config, overrides=args.overrides).eval
     tracker = load_tracker(args.ckpt, args.device)
-    items, kind = load_source(args.data, cfg)
+    skipped: list[str] = []  # scenes that could not be read (warned about, counted in the table)
+    items, kind = load_source(args.data, cfg, skipped)
+    if not items:
+        raise UserError(f"no readable scene in {args.data} ({len(skipped)} skipped, see the "
+                        "warnings above); check it with `c4d inspect SOURCE --check`")
     result = evaluate_items(tracker, items, args.mode)
     # The reference that gives the numbers a meaning: no motion, always visible, all static.
     baseline = evaluate_items(ZeroMotionBaseline(), items, args.mode)
+    for summary in (result["summary"], baseline["summary"]):
+        summary["num_skipped"] = len(skipped)
     title = f"{Path(args.data).name} ({args.mode})"
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
     out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{args.mode}"
     info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": args.mode,
+            "skipped": skipped,
             "resolution": list(cfg.resolution), "num_tracks": cfg.num_tracks if kind == "shards" else None}
     json_path, md_path = write_report(result, baseline, out, title, info)
     print(md_path.read_text(), end="")

@@ -1,29 +1,61 @@
 """`c4d train`: train DynPT on datagen shards (see docs/TRAINING.md).
 
-Also runnable under torchrun for multi-GPU / multi-node training:
-`torchrun --nproc_per_node 8 -m dynpt.cli_train --config configs/dynpt/paper-gpu.yaml ...`.
+`--nproc-per-node N` starts N DDP processes on this machine (torchrun's `--standalone` mode, run
+in this process). Under torchrun itself, for several machines:
+`torchrun --nproc_per_node 8 -m dynpt.cli_train --config paper-gpu ...`.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import os
 import sys
 
 from c4d_core.config import add_training_arguments, load_config
+from c4d_core.errors import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_training_arguments(parser, "dynpt")
     parser.add_argument("--init", metavar="cotracker3:PATH", default=None,
                         help="start from CoTracker3's released weights (same as model.init_from=...)")
+    parser.add_argument("--nproc-per-node", type=int, default=1, metavar="N",
+                        help="DDP processes on this machine (one per GPU; gloo on CPUs); for "
+                        "several machines run torchrun itself (docs/TRAINING.md)")
 
 
 def run(args: argparse.Namespace) -> int:
-    from dynpt.train import train
+    from dynpt.train import check_schedule, train
 
     init = [f"model.init_from={args.init}"] if args.init else []
     cfg = load_config("dynpt", args.config, overrides=[*args.overrides, *init])
+    if args.nproc_per_node < 1:
+        raise UserError(f"--nproc-per-node must be at least 1, got {args.nproc_per_node}")
+    if args.nproc_per_node > 1 and "LOCAL_RANK" not in os.environ:
+        check_schedule(cfg.train, args.nproc_per_node)  # a mistake: one line, no process started
+        child = ["--config", args.config, *args.overrides, *init, *(["--resume"] if args.resume else [])]
+        return launch(args.nproc_per_node, child, verbose=getattr(args, "verbose", False))
     train(cfg, resume=args.resume)
+    return 0
+
+
+def launch(nproc: int, argv: list[str], verbose: bool = False) -> int:
+    """`torchrun --standalone --nproc_per_node nproc -m dynpt.cli_train *argv` in this process;
+    a failed process becomes one line (its own message is printed above by that process)."""
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.run import get_args_parser
+    from torch.distributed.run import run as torchrun
+
+    if not verbose:  # torchrun's agent logs each failure as a report with a traceback
+        logging.getLogger("torch.distributed.elastic").setLevel(logging.CRITICAL)
+    try:
+        torchrun(get_args_parser().parse_args(["--standalone", "--nproc_per_node", str(nproc),
+                                               "-m", "dynpt.cli_train", *argv]))
+    except ChildFailedError as exc:
+        rank, failure = exc.get_first_failure()
+        raise UserError(f"training failed: process {rank} of {nproc} exited with status "
+                        f"{failure.exitcode} (its message is above)") from None
     return 0
 
 

@@ -73,7 +73,7 @@ def sample_query_neighbourhoods(
                 fmap[b, frame][None], grid[b, sel][None], mode="bilinear",
                 padding_mode="border", align_corners=align_corners,
             )  # (1,C,n,P)
-            out[b, sel] = s[0].permute(1, 2, 0)
+            out[b, sel] = s[0].permute(1, 2, 0).to(out.dtype)  # autocast runs grid_sample in fp32
     return out
 
 

@@ -4,7 +4,8 @@ Per scene: choose a clip (T frames at a random stride), augment it (dynpt.augmen
 N tracks that are visible at their query frame -- at their first visible frame, or (for a
 `random_query_fraction` of them) at a random visible frame. A sample is a dict of numpy arrays:
 `video` uint8 (T,H,W,3), `queries` float32 (N,3) as (t, x, y), `tracks` float32 (T,N,2),
-`visible` bool (T,N), `moving` bool (T,N), and `position` int64 (the stream state after it).
+`visible` bool (T,N), `moving` bool (T,N), and, from `ShardStream`, `key` (the scene's shard
+key, e.g. `train-00000042`) and `position` int64 (the stream state after it).
 
 `ShardStream` streams one or more shard sets mixed with weights. Every DDP rank and DataLoader
 worker reads its own slice ("split") of the shards (or of the samples, when there are fewer
@@ -13,6 +14,11 @@ buffer, all seeded by (seed, source, epoch, split). Per sample, the source choic
 augmentation are seeded by (seed, split, sample counter). So the stream is a pure function of
 the seed and the position; `position` lets `--resume` continue exactly: the worker re-reads (but
 does not decode) the samples already taken from the current epoch of each source.
+
+Bad data (webdataset's warn-and-continue): a corrupt or incomplete sample, or the unreadable rest
+of a truncated shard, is skipped with a warning naming shard and sample and counted; every sample
+carries `counts` int64 [read, bad] of its loader split. A split stops with a `UserError` once
+more than `data.max_bad_fraction` of its samples are bad (counted from 100 samples on).
 """
 
 from __future__ import annotations
@@ -29,10 +35,17 @@ from c4d_core.errors import UserError
 from datagen.scene import Scene
 from datagen.shards import decode_scene, iter_samples, list_shards
 from dynpt.augment import augment_clip
+from dynpt.device import pin_memory
 
 log = logging.getLogger(__name__)
 
 TRAIN_FIELDS = ("rgb", "tracks", "occluded", "moving", "query_frame")
+MIN_COUNTED = 100  # the bad-sample limit is a fraction of at least this many samples
+
+
+def too_many_bad(bad: int, read: int, max_fraction: float) -> bool:
+    """True once `bad` of `read` samples exceed the allowed fraction (of at least MIN_COUNTED)."""
+    return bad > max_fraction * max(read, MIN_COUNTED)
 
 
 # --- one sample ---------------------------------------------------------------------------------
@@ -158,13 +171,16 @@ class ShardStream(IterableDataset):
         rng = _rng(self.seed, source, epoch, split, 1)
         index = 0
         for shard_id in mine:
-            for sample in iter_samples(shards[shard_id], TRAIN_FIELDS):
-                index += 1
-                if not by_shard and (index - 1) % num_splits != split:
-                    continue
-                buffer.append(sample)
-                if len(buffer) >= self.cfg.shuffle_buffer:
-                    yield buffer.pop(int(rng.integers(len(buffer))))
+            try:
+                for sample in iter_samples(shards[shard_id], TRAIN_FIELDS):
+                    index += 1
+                    if not by_shard and (index - 1) % num_splits != split:
+                        continue
+                    buffer.append(sample)
+                    if len(buffer) >= self.cfg.shuffle_buffer:
+                        yield buffer.pop(int(rng.integers(len(buffer))))
+            except UserError as exc:  # a truncated or damaged tar: its rest is lost
+                self._bad(exc)
         while buffer:
             yield buffer.pop(int(rng.integers(len(buffer))))
 
@@ -183,7 +199,19 @@ class ShardStream(IterableDataset):
                                 f"{num_splits}; use fewer workers/GPUs or more scenes")
             epoch, taken = epoch + 1, 0
 
+    def _bad(self, exc: UserError) -> None:
+        """Count and report one bad sample (or unreadable shard rest); stop past the limit."""
+        read, bad = self._counts[0], self._counts[1] + 1
+        self._counts[1] = bad
+        log.warning("skipping bad training data (%d bad of %d samples read): %s", bad, read, exc)
+        if too_many_bad(bad, read, float(self.cfg.max_bad_fraction)):
+            raise UserError(
+                f"{bad} of {read} training samples are bad, more than data.max_bad_fraction="
+                f"{self.cfg.max_bad_fraction}; last: {exc} (check the data with `c4d inspect "
+                "SOURCE --check`, or raise data.max_bad_fraction)")
+
     def __iter__(self) -> Iterator[dict]:
+        self._counts = [0, 0]  # [read, bad] of this split, since this iterator started
         info = get_worker_info()
         worker, num_workers = (info.id, info.num_workers) if info else (0, 1)
         num_splits = self.world_size * num_workers
@@ -194,11 +222,22 @@ class ShardStream(IterableDataset):
         while True:
             n = state[0]
             source = int(_rng(self.seed, split, n, 0).choice(len(self.probs), p=self.probs))
-            scene = decode_scene(next(streams[source]), TRAIN_FIELDS)
+            raw = next(streams[source])
             state[0] = n + 1
-            sample = make_training_sample(scene, self.cfg, _rng(self.seed, split, n, 1))
+            self._counts[0] += 1
+            try:
+                scene = decode_scene(raw, TRAIN_FIELDS)
+            except UserError as exc:
+                self._bad(exc)
+                continue
+            try:
+                sample = make_training_sample(scene, self.cfg, _rng(self.seed, split, n, 1))
+            except UserError as exc:
+                raise UserError(f"sample {raw['__key__']} of {raw['__url__']}: {exc}") from exc
             if sample is not None:
-                yield {**sample, "position": np.array([split, num_splits] + state, np.int64)}
+                yield {**sample, "key": raw["__key__"],
+                       "position": np.array([split, num_splits] + state, np.int64),
+                       "counts": np.array(self._counts, np.int64)}
 
 
 def _init_worker(worker_id: int) -> None:
@@ -207,10 +246,12 @@ def _init_worker(worker_id: int) -> None:
     torch.set_num_threads(1)
 
 
-def make_loader(stream: ShardStream, batch_size: int, num_workers: int) -> DataLoader:
-    """A DataLoader over `stream`: batches come from workers in turn, so the order is fixed."""
+def make_loader(stream: ShardStream, batch_size: int, num_workers: int,
+                device_type: str = "cpu") -> DataLoader:
+    """A DataLoader over `stream` for batches going to `device_type` (pinned memory on a GPU):
+    batches come from workers in turn, so the order is fixed."""
     return DataLoader(stream, batch_size=batch_size, num_workers=num_workers,
-                      persistent_workers=num_workers > 0, pin_memory=torch.cuda.is_available(),
+                      persistent_workers=num_workers > 0, pin_memory=pin_memory(device_type),
                       prefetch_factor=2 if num_workers > 0 else None,
                       worker_init_fn=_init_worker if num_workers > 0 else None)
 

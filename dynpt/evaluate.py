@@ -6,6 +6,8 @@ seed, like the paper's D-ACC protocol; or TAP-Vid DAVIS / Kinetics pickles (dynp
 Queries follow the benchmark's 'first' or 'strided' mode. TAP-Vid metrics are computed per video
 and averaged over videos. D-ACC pools every (query, frame) pair of the source, except the query
 frame itself, and is also reported separately on ground-truth moving and static pairs.
+A corrupt or incomplete scene (or the unreadable rest of a truncated shard) is skipped with a
+warning naming shard and scene; the report counts the skipped ones.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 from c4d_core.draw import contact_sheet, draw_tracks_enlarged
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
-from datagen.shards import list_shards, read_scenes
+from datagen.shards import decode_scene, iter_samples, list_shards
 from dynpt.augment import resize_clip
 from dynpt.metrics import dynamic_accuracy, paired_bootstrap_interval, tapvid_metrics
 from dynpt.tapvid_data import read_tapvid, sample_queries
@@ -62,23 +64,40 @@ def scene_item(scene, index: int, eval_cfg) -> dict:
             "track_kind": None if kinds is None else kinds[chosen]}
 
 
-def load_eval_scenes(source, eval_cfg) -> list[dict]:
-    """The first `eval_cfg.num_scenes` (0: all) scenes of a shard source as evaluation items."""
-    items = []
-    for index, scene in enumerate(read_scenes(source, fields=EVAL_FIELDS)):
-        if eval_cfg.num_scenes and index >= eval_cfg.num_scenes:
-            break
-        items.append(scene_item(scene, index, eval_cfg))
+def load_eval_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list[dict]:
+    """The first `eval_cfg.num_scenes` (0: all) readable scenes of a shard source as evaluation
+    items. Unreadable ones are skipped with a warning; their errors are appended to `skipped`."""
+    items: list[dict] = []
+    skipped = [] if skipped is None else skipped
+
+    def skip(exc: UserError) -> None:
+        log.warning("skipping a bad evaluation scene: %s", exc)
+        skipped.append(str(exc))
+
+    for shard in list_shards(source):
+        try:
+            for raw in iter_samples(shard, EVAL_FIELDS):
+                if eval_cfg.num_scenes and len(items) >= eval_cfg.num_scenes:
+                    return items
+                try:
+                    scene = decode_scene(raw, EVAL_FIELDS)
+                except UserError as exc:
+                    skip(exc)
+                    continue
+                items.append(scene_item(scene, len(items) + len(skipped), eval_cfg))
+        except UserError as exc:  # a truncated or damaged tar: its rest is lost
+            skip(exc)
     return items
 
 
-def load_source(source: str, eval_cfg) -> tuple[list[dict], str]:
-    """Evaluation items of a shard source or a TAP-Vid pickle source, and its kind."""
+def load_source(source: str, eval_cfg, skipped: list[str] | None = None) -> tuple[list[dict], str]:
+    """Evaluation items of a shard source or a TAP-Vid pickle source, and its kind (shards:
+    the errors of skipped scenes are appended to `skipped`)."""
     text = os.fspath(source)
     if text.endswith(".pkl") or (Path(text).is_dir() and any(Path(text).glob("*.pkl"))):
         return list(read_tapvid(text, tuple(eval_cfg.resolution))), "tapvid"
     list_shards(text)  # a clear UserError if there are no shards
-    return load_eval_scenes(text, eval_cfg), "shards"
+    return load_eval_scenes(text, eval_cfg, skipped), "shards"
 
 
 def track_item(tracker, item: dict, query_mode: str):
@@ -190,12 +209,14 @@ def markdown_table(rows: dict[str, dict], title: str) -> str:
     """Markdown table (percent), one row per {name: summary}, e.g. the tracker and a baseline."""
     first = next(iter(rows.values()))
     keys = [k for k in TABLE_KEYS if k in first]
-    head = "| source | tracker | videos | " + " | ".join(TABLE_KEYS[k] for k in keys) + " |"
-    rule = "|---|---|---|" + "---|" * len(keys)
+    head = ("| source | tracker | videos | skipped | " + " | ".join(TABLE_KEYS[k] for k in keys)
+            + " |")
+    rule = "|---|---|---|---|" + "---|" * len(keys)
     lines = [head, rule]
     for name, summary in rows.items():
         cells = " | ".join(f"{100 * summary[k]:.1f}" for k in keys)
-        lines.append(f"| {title} | {name} | {summary['num_videos']} | {cells} |")
+        lines.append(f"| {title} | {name} | {summary['num_videos']} | "
+                     f"{summary.get('num_skipped', 0)} | {cells} |")
     return "\n".join(lines) + "\n"
 
 

@@ -7,7 +7,6 @@ frame, backward by tracking the reversed video, so every frame gets a prediction
 
 from __future__ import annotations
 
-import contextlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,8 +18,12 @@ import torch.nn.functional as F
 from c4d_core.errors import UserError
 from c4d_core.files import atomic_path
 from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
+from dynpt.device import autocast, bf16_supported, inference_autocast_dtype
 from dynpt.model import DynPT
 from dynpt.query_sampling import sample_queries
+
+
+MIN_SIDE = 17  # px at the network's resolution: the CNN's 1/16 features need more than one cell
 
 
 @dataclass
@@ -96,10 +99,8 @@ class Tracker:
         self.device = device
 
     def _autocast(self):
-        if self.device.type == "cuda":
-            dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
-            return torch.autocast("cuda", dtype=dtype)
-        return contextlib.nullcontext()
+        return autocast(self.device.type, inference_autocast_dtype(self.device.type,
+                                                                   bf16_supported(self.device)))
 
     def _video_tensor(self, video, size: tuple[int, int]) -> torch.Tensor:
         """uint8 (T,H,W,3) -> uint8 (1,T,3,h,w) on the device, resized a few frames at a time."""
@@ -160,6 +161,10 @@ class Tracker:
         queries = _check_queries(queries, T, H, W)
         cfg = self.model.config
         h, w = cfg["resolution"] or (H, W)
+        if min(h, w) < MIN_SIDE:
+            raise UserError(f"video frames of {W}x{H} pixels are too small: the tracker needs at "
+                            f"least {MIN_SIDE}x{MIN_SIDE} (its coarsest features are 1/16 of the "
+                            "frame); upscale the video first")
         sx, sy = w / W, h / H
         scaled = queries.copy()
         scaled[:, 1] = (queries[:, 1] + 0.5) * sx - 0.5

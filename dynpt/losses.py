@@ -16,18 +16,24 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from c4d_core.config import defaults_from
+
 
 @dataclass(frozen=True)
+@defaults_from("dynpt", "loss")
 class LossWeights:
-    track_visible: float = 0.05
-    track_occluded: float = 0.01
-    huber_delta_px: float = 6.0
-    gamma: float = 0.8
-    visibility: float = 1.0
-    confidence: float = 1.0
-    conf_radius_px: float = 12.0
-    mobility: float = 1.0
-    mobility_pos_weight: float = 1.0  # BCE weight of moving points (>1 counters few movers)
+    """The `loss:` keys of configs/dynpt, where each is explained; defaults from the schema's root
+    preset (tiny-cpu)."""
+
+    track_visible: float
+    track_occluded: float
+    huber_delta_px: float
+    gamma: float
+    visibility: float
+    confidence: float
+    conf_radius_px: float
+    mobility: float
+    mobility_pos_weight: float
 
     @classmethod
     def from_config(cls, cfg) -> "LossWeights":

@@ -8,15 +8,20 @@ Files in `train.out_dir`: `config.yaml`, `checkpoints/step_XXXXXXXX.pt` (the las
 `keep_last`), `checkpoints/best.pt` (best validation `eval.best_metric`), `log.jsonl` (one line
 per step: losses, learning rate), `tb/` (TensorBoard). A checkpoint holds the model, optimiser,
 scheduler, step, RNG states and the data-stream position, so `--resume` continues the same run.
+`--resume` starts from the newest readable step checkpoint (a damaged newest one is skipped with
+a warning), drops log lines past its step (and a torn last line), and rebuilds the OneCycle
+annealing to end at a changed `train.steps` (docs/TRAINING.md).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
 import os
 import random
+import threading
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -29,13 +34,18 @@ from torch.nn.parallel import DistributedDataParallel
 
 from c4d_core.config import to_dict
 from c4d_core.errors import UserError
-from dynpt.checkpoint import load_checkpoint, save_checkpoint
+from c4d_core.files import DISK_ERRNOS, append_line, disk_error, write_text
+from dynpt.checkpoint import CheckpointUnreadable, load_checkpoint, save_checkpoint
 from dynpt.data import ShardStream, StreamPosition, make_loader, merge_positions
+from dynpt.device import (apply_cudnn_flags, autocast, bf16_supported, cudnn_flags, ddp_backend,
+                          ddp_device_ids, peak_memory, reset_peak_memory, training_autocast_dtype, training_device)
 from dynpt.evaluate import evaluate_model, load_eval_scenes, track_image
 from dynpt.losses import LossWeights, dynpt_loss
 from dynpt.model import build_model
 
 log = logging.getLogger(__name__)
+
+DEBUG_DUMP_ENV = "DYNPT_DEBUG_DUMP"  # a folder: per-step weight digests of every rank (debugging)
 
 
 # --- process set-up -----------------------------------------------------------------------------
@@ -45,12 +55,12 @@ def init_distributed() -> tuple[int, int, torch.device]:
     """(rank, world_size, device) from torchrun's environment; a single process without it."""
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    cuda = torch.cuda.is_available()
-    device = torch.device(f"cuda:{local_rank}" if cuda else "cpu")
-    if cuda:
+    device = training_device(torch.cuda.is_available(), local_rank)
+    if device.type == "cuda":
         torch.cuda.set_device(device)
+        apply_cudnn_flags(cudnn_flags(device.type))
     if world_size > 1 and not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if cuda else "gloo")
+        dist.init_process_group(backend=ddp_backend(device.type))
     return (dist.get_rank() if world_size > 1 else 0), world_size, device
 
 
@@ -63,6 +73,22 @@ def accumulation_steps(total_batch: int, batch_size: int, world_size: int) -> in
             f"x {world_size} processes; choose total_batch as a multiple of {per_pass}"
         )
     return total_batch // per_pass
+
+
+def check_schedule(tc, world_size: int) -> int:
+    """Accumulation steps of the `train` section on `world_size` processes, or a UserError.
+
+    Under torchrun every process finds the same mistake: only rank 0 says it (one line), the
+    others exit with the same status and no message.
+    """
+    try:
+        if tc.steps < 3:
+            raise UserError(f"train.steps={tc.steps}: the OneCycle schedule needs at least 3 steps")
+        return accumulation_steps(tc.total_batch, tc.batch_size, world_size)
+    except UserError:
+        if int(os.environ.get("RANK", "0")) > 0:
+            raise SystemExit(2) from None
+        raise
 
 
 def rng_state() -> dict:
@@ -95,6 +121,51 @@ def latest_checkpoint(out_dir: str | Path) -> Path | None:
     """The step checkpoint with the highest step in `out_dir`, or None."""
     found = sorted(checkpoint_dir(out_dir).glob("step_*.pt"))
     return found[-1] if found else None
+
+
+def load_latest_checkpoint(out_dir: str | Path, model_cfg) -> tuple[Path, dict]:
+    """(path, checkpoint) of the newest readable step checkpoint; an unreadable newer one (cut
+    by a crash or a full disk) is skipped with a warning. `UserError` if none is readable."""
+    found = sorted(checkpoint_dir(out_dir).glob("step_*.pt"), reverse=True)
+    if not found:
+        raise UserError(f"--resume: no checkpoint in {checkpoint_dir(out_dir)}; start "
+                        "without --resume, or set train.out_dir to the run to continue")
+    for path in found:
+        try:
+            return path, load_checkpoint(path, model_cfg)
+        except CheckpointUnreadable as exc:
+            log.warning("warning: skipping %s: %s", path.name, exc)
+    raise UserError(f"--resume: no readable checkpoint in {checkpoint_dir(out_dir)} (see the "
+                    "warnings above); start a new run in another train.out_dir")
+
+
+def rebuild_annealing(scheduler, total_steps: int) -> None:
+    """Make a OneCycleLR end at `total_steps` instead of its stored total (a resume with another
+    `train.steps`): the warm-up is kept, the annealing phase ends at the new last step."""
+    scheduler.total_steps = total_steps
+    scheduler._schedule_phases[-1]["end_step"] = float(total_steps - 1)
+    scheduler.last_epoch -= 1
+    scheduler.step()  # the optimiser's rate for the next step, now on the new schedule
+
+
+def _quiet_disk_errors(args) -> None:
+    """`threading.excepthook` while training: a disk error in TensorBoard's writer thread prints
+    no traceback (the training thread meets it too and reports it as one line)."""
+    if not (isinstance(args.exc_value, OSError) and args.exc_value.errno in DISK_ERRNOS):
+        threading.__excepthook__(args)
+
+
+def next_batch(batches):
+    """`next(batches)`, with a loader worker's `UserError` as its own one-line message (the
+    DataLoader wraps it in "Caught UserError in DataLoader worker ..." and the traceback)."""
+    try:
+        return next(batches)
+    except UserError as exc:
+        text = str(exc)
+        if not text.startswith("Caught UserError"):
+            raise
+        last = text.rstrip().splitlines()[-1]
+        raise UserError(last.split("UserError: ", 1)[-1]) from None
 
 
 def prune_checkpoints(out_dir: str | Path, keep_last: int) -> None:
@@ -144,12 +215,10 @@ class Trainer:
     def __init__(self, cfg, resume: bool = False):
         self.cfg = cfg
         tc = cfg.train
+        self.accum = check_schedule(tc, int(os.environ.get("WORLD_SIZE", "1")))
         self.rank, self.world_size, self.device = init_distributed()
         self.main = self.rank == 0
         self.out_dir = Path(tc.out_dir)
-        self.accum = accumulation_steps(tc.total_batch, tc.batch_size, self.world_size)
-        if tc.steps < 3:
-            raise UserError(f"train.steps={tc.steps}: the OneCycle schedule needs at least 3 steps")
         random.seed(cfg.seed + self.rank)
         np.random.seed(cfg.seed + self.rank)
         torch.manual_seed(cfg.seed + self.rank)
@@ -160,6 +229,8 @@ class Trainer:
 
             load_into(self.model, parse_init(cfg.model.init_from))
         self.model.to(self.device)
+        self.amp_dtype = training_autocast_dtype(self.device.type, tc.bf16,
+                                                 bf16_supported(self.device))
         groups = param_groups(self.model, tc.lr, tc.lr_scale)
         self.optimizer = torch.optim.AdamW(groups, lr=tc.lr, weight_decay=tc.weight_decay,
                                            eps=tc.adam_eps)
@@ -171,20 +242,22 @@ class Trainer:
             final_div_factor=tc.final_div_factor)
         self.loss_weights = LossWeights.from_config(cfg.loss)
         self.step, self.best = 0, None
+        self.data_counts: dict[int, tuple[int, int]] = {}  # loader split -> (read, bad)
         start_positions: dict = {}
         if resume:
             start_positions = self._resume()
         elif latest_checkpoint(self.out_dir) is not None:
             raise UserError(f"{self.out_dir} already holds checkpoints; add --resume to continue "
                             "that run, or set train.out_dir=... to a new folder")
-        self.ddp = (DistributedDataParallel(self.model, device_ids=[self.device.index]
-                                            if self.device.type == "cuda" else None)
+        elif self.main:
+            self._truncate_log(0)  # lines of a run that crashed before its first checkpoint
+        self.ddp = (DistributedDataParallel(self.model, device_ids=ddp_device_ids(self.device))
                     if self.world_size > 1 else self.model)
         sources = list(cfg.data.sources)
         weights = list(cfg.data.weights) or [1.0] * len(sources)
         stream = ShardStream(sources, weights, cfg.data, cfg.seed,
                              self.rank, self.world_size, start_positions)
-        self.loader = make_loader(stream, tc.batch_size, cfg.data.num_workers)
+        self.loader = make_loader(stream, tc.batch_size, cfg.data.num_workers, self.device.type)
         self.position = StreamPosition()
         self.val_scenes = (load_eval_scenes(cfg.eval.source, cfg.eval)
                            if self.main and cfg.eval.source else [])
@@ -192,22 +265,28 @@ class Trainer:
         if self.main:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            (self.out_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-            self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=self.step + 1)
+            write_text(self.out_dir / "config.yaml", OmegaConf.to_yaml(cfg))
+            try:
+                self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=self.step + 1)
+            except OSError as exc:
+                raise disk_error(self.out_dir / "tb", exc) from exc
 
     # -- resume --
 
     def _resume(self) -> dict:
-        path = latest_checkpoint(self.out_dir)
-        if path is None:
-            raise UserError(f"--resume: no checkpoint in {checkpoint_dir(self.out_dir)}; start "
-                            "without --resume, or set train.out_dir to the run to continue")
-        ckpt = load_checkpoint(path, self.cfg.model)
+        path, ckpt = load_latest_checkpoint(self.out_dir, self.cfg.model)
         extra = ckpt["extra"]
         self.model.load_state_dict(ckpt["model"])
         self.optimizer.load_state_dict(extra["optimizer"])
         self.scheduler.load_state_dict(extra["scheduler"])
+        if self.scheduler.total_steps != self.cfg.train.steps:
+            if self.cfg.train.steps <= int(ckpt["step"]):
+                raise UserError(f"--resume: the run is at step {ckpt['step']}, so train.steps="
+                                f"{self.cfg.train.steps} has nothing left to do; set it higher")
+            log.info("train.steps changed from %d to %d: the learning-rate annealing now ends at "
+                     "step %d", self.scheduler.total_steps, self.cfg.train.steps,
+                     self.cfg.train.steps)
+            rebuild_annealing(self.scheduler, self.cfg.train.steps)
         self.step, self.best = int(ckpt["step"]), extra.get("best")
         set_rng_state(extra["rng"][min(self.rank, len(extra["rng"]) - 1)])
         log.info("resumed %s at step %d", path, self.step)
@@ -217,11 +296,26 @@ class Trainer:
         return merge_positions(extra["data"], num_splits)
 
     def _truncate_log(self, step: int) -> None:
-        """Drop log lines after `step` (written after the checkpoint, before a crash)."""
+        """Drop log lines after `step` (written after the checkpoint, before a crash) and a torn
+        last line (a crash or a full disk inside the append); rewritten atomically."""
         log_path = self.out_dir / "log.jsonl"
-        if log_path.exists():
-            lines = [l for l in log_path.read_text().splitlines() if json.loads(l)["step"] <= step]
-            log_path.write_text("".join(l + "\n" for l in lines))
+        if not log_path.exists():
+            return
+        text = log_path.read_text(errors="replace")
+        lines, kept = text.splitlines(), []
+        for number, line in enumerate(lines, 1):
+            try:
+                record = json.loads(line)
+            except ValueError:
+                if number < len(lines):
+                    raise UserError(f"{log_path} line {number} is not JSON (edited by hand?); "
+                                    "fix or delete that line, then resume") from None
+                log.warning("warning: dropping the torn last line of %s", log_path)
+                continue
+            if record["step"] <= step:
+                kept.append(line)
+        if len(kept) != len(lines) or (text and not text.endswith("\n")):
+            write_text(log_path, "".join(line + "\n" for line in kept))
 
     # -- checkpoints --
 
@@ -248,17 +342,19 @@ class Trainer:
     # -- one step --
 
     def _autocast(self):
-        if self.device.type == "cuda" and self.cfg.train.bf16:
-            return torch.autocast("cuda", dtype=torch.bfloat16)
-        return nullcontext()
+        return autocast(self.device.type, self.amp_dtype)
 
     def train_step(self, batches) -> dict[str, float]:
         """One optimiser step over `accum` micro-batches; returns the mean weighted loss terms."""
         self.ddp.train()
         totals: dict[str, float] = {}
+        scenes: list[str] = []
         for i in range(self.accum):
-            batch = next(batches)
+            batch = next_batch(batches)
             self.position.update(batch["position"])
+            for split, counts in zip(batch["position"][:, 0].tolist(), batch["counts"].tolist()):
+                self.data_counts[split] = tuple(counts)
+            scenes += batch.get("key", [])
             video = batch["video"].to(self.device, non_blocking=True).permute(0, 1, 4, 2, 3).float()
             queries = batch["queries"].to(self.device)  # (B,N,3)
             target = {
@@ -280,7 +376,20 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         self.step += 1
         totals["grad_norm"] = float(grad_norm)
+        if DEBUG_DUMP_ENV in os.environ:
+            self._debug_dump(Path(os.environ[DEBUG_DUMP_ENV]), scenes)
         return totals
+
+    def _debug_dump(self, folder: Path, scenes: list[str]) -> None:
+        """Append {step, weights (SHA-256 of every tensor's bytes), scenes read} to
+        folder/rank_R.jsonl: `DYNPT_DEBUG_DUMP=DIR` lets tests/test_ddp.py compare the ranks."""
+        digest = hashlib.sha256()
+        for tensor in self.model.state_dict().values():
+            digest.update(tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy())
+        folder.mkdir(parents=True, exist_ok=True)
+        with open(folder / f"rank_{self.rank}.jsonl", "a") as f:
+            f.write(json.dumps({"step": self.step, "weights": digest.hexdigest(),
+                                "scenes": scenes}) + "\n")
 
     # -- validation --
 
@@ -316,15 +425,13 @@ class Trainer:
         log_path = self.out_dir / "log.jsonl"
         summary: dict = {}
         window_start, window_clips = time.perf_counter(), 0
-        if self.device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(self.device)
+        reset_peak_memory(self.device)
         while self.step < stop:
             terms = self.train_step(batches)
             window_clips += tc.total_batch
             lr = terms.pop("lr")
             if self.main:
-                with open(log_path, "a") as f:
-                    f.write(json.dumps({"step": self.step, "lr": lr, **terms}) + "\n")
+                append_line(log_path, json.dumps({"step": self.step, "lr": lr, **terms}))
             if self.main and (self.step % tc.log_every == 0 or self.step == stop):
                 elapsed = time.perf_counter() - window_start
                 for key, value in terms.items():
@@ -332,10 +439,8 @@ class Trainer:
                                            value, self.step)
                 self.writer.add_scalar("train/lr", lr, self.step)
                 self.writer.add_scalar("train/clips_per_s", window_clips / elapsed, self.step)
-                if self.device.type == "cuda":
-                    self.writer.add_scalar("train/gpu_mem_gib",
-                                           torch.cuda.max_memory_allocated(self.device) / 2**30,
-                                           self.step)
+                if (peak := peak_memory(self.device)) is not None:
+                    self.writer.add_scalar("train/gpu_mem_gib", peak / 2**30, self.step)
                 log.info("step %d/%d  loss %.4f  lr %.2e  %.2f clips/s", self.step, tc.steps,
                          terms["total"], lr, window_clips / elapsed)
                 window_start, window_clips = time.perf_counter(), 0
@@ -353,6 +458,10 @@ class Trainer:
                 self.save(summary)
         if self.writer is not None:
             self.writer.flush()
+        read, bad = (sum(c[i] for c in self.data_counts.values()) for i in (0, 1))
+        if bad:
+            log.warning("warning: skipped %d bad training samples of %d read (see the warnings "
+                        "above; `c4d inspect SOURCE --check` lists them)", bad, read)
         return summary
 
     def close(self) -> None:
@@ -368,7 +477,15 @@ def train(cfg, resume: bool = False) -> dict:
         raise UserError("no training data: set data.sources=[DIR_OR_GLOB,...] (and data.weights) "
                         "to shard sets made with `c4d datagen`")
     trainer = Trainer(cfg, resume=resume)
+    hook, threading.excepthook = threading.excepthook, _quiet_disk_errors
     try:
-        return trainer.fit()
+        try:
+            return trainer.fit()
+        finally:
+            trainer.close()
+    except OSError as exc:  # TensorBoard's event file on a full disk (its own thread writes it)
+        if exc.errno not in DISK_ERRNOS:
+            raise
+        raise disk_error(exc.filename or trainer.out_dir / "tb", exc) from exc
     finally:
-        trainer.close()
+        threading.excepthook = hook

@@ -38,8 +38,9 @@ def reconstruction(scene, frames=USED, depth_scale=3.0, hw=None, report=True):
         depth = np.stack([cv2.resize(d, (hw[1], hw[0]), interpolation=cv2.INTER_NEAREST) for d in depth])
         masks = np.stack([cv2.resize(m.astype(np.uint8), (hw[1], hw[0]), interpolation=cv2.INTER_NEAREST) > 0 for m in masks])
     t, h, w = depth.shape
+    rgb = np.stack([cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA) for f in scene.rgb[frames]])
     return Reconstruction(
-        frames=np.zeros((t, h, w, 3), np.uint8), depth=depth.astype(np.float32), masks=masks,
+        frames=rgb, depth=depth.astype(np.float32), masks=masks,
         cam_to_world=poses.astype(np.float32), intrinsics=scene.intrinsics[frames],
         points=np.zeros((t, h, w, 3), np.float32), confidence=np.ones((t, h, w), np.float32),
         report={"inputs": {"frame_indices": list(frames)}} if report else {},
@@ -83,6 +84,18 @@ def test_bad_inputs_are_one_line_errors(shard, tmp_path, capsys):
     out = write_reconstruction(reconstruction(scenes[0]), tmp_path / "out")
     assert main(["eval-recon", "--pred", str(out), "--gt", str(path), "--scene-index", "5"]) == 2
     assert "fewer than 6 scenes" in capsys.readouterr().err
+    other = write_reconstruction(reconstruction(scenes[1]), tmp_path / "other")
+    assert main(["eval-recon", "--pred", str(other), "--gt", str(path)]) == 2
+    assert "reconstructs another video" in capsys.readouterr().err
+    wrong = reconstruction(scenes[0])
+    wrong.report["inputs"]["source_hw"] = [64, 64]
+    assert main(["eval-recon", "--pred", str(write_reconstruction(wrong, tmp_path / "w")),
+                 "--gt", str(path)]) == 2
+    assert "from a 64x64 video" in capsys.readouterr().err
+    squeezed = write_reconstruction(reconstruction(scenes[0], frames=list(range(6)), hw=(33, 17),
+                                                   report=False), tmp_path / "squeezed")
+    assert main(["eval-recon", "--pred", str(squeezed), "--gt", str(path)]) == 2
+    assert "aspect ratios differ" in capsys.readouterr().err
     (out / "depth" / "000003.npy").unlink()
     assert main(["eval-recon", "--pred", str(out), "--gt", str(path)]) == 2
     assert "4 poses, 3 depth maps" in capsys.readouterr().err

@@ -86,7 +86,7 @@ def test_run_writes_every_output_of_the_contract(inputs, tmp_path):
     T = 8
     for name in [f"frames/{T - 1:06d}.png", "depth/000000.npy", "depth/000000.png", "masks/000000.png",
                  "poses_tum.txt", "intrinsics.npy", "pointmaps.npz", "tracks_2d.npz", "tracks_3d.npz",
-                 "scene.ply", "report.json"]:
+                 "scene.ply", "report.json", "config.yaml"]:
         assert (out / name).is_file(), name
     assert cv2.imread(str(out / "frames/000000.png")).shape == (48, 64, 3)
     assert np.load(out / "depth/000000.npy").shape == (48, 64)
@@ -144,3 +144,59 @@ def test_video_folder_input_with_frame_limit(inputs, tmp_path):
         cv2.imwrite(str(frames_dir / f"{t:03d}.png"), frame[..., ::-1])
     loaded = load_video_input(frames_dir, size=64, max_frames=3)
     assert loaded.frames.shape == (3, 48, 64, 3) and loaded.source_indices.tolist() == [0, 1, 2]
+
+
+def test_one_yaml_file_holds_a_whole_run(inputs, tmp_path, capsys):
+    """Every flag is a config key: a YAML file alone sets checkpoints, size, grid and flow, and the
+    output folder keeps the resolved config."""
+    folder, video, ckpt, tracker = inputs
+    run_yaml = tmp_path / "run.yaml"
+    run_yaml.write_text(
+        "_base_: c4d/tiny\n"  # a shipped preset by name
+        f"pointmaps: {{checkpoint: {ckpt}, size: 64}}\ntracker: {{checkpoint: {tracker}, grid_size: 16}}\n"
+        "graph: {window: 2}\noptim: {stage1_iters: 4, stage2_iters: 2}\npts: {window: 4, extend: 1}\n")
+    out = tmp_path / "out"
+    assert main(["run", str(video), "--out", str(out), "--preset", str(run_yaml)]) == 0
+    kept = load_config("c4d", out / "config.yaml")
+    assert kept.pointmaps.checkpoint == str(ckpt) and kept.tracker.grid_size == 16
+    assert kept.optim.stage1_iters == 4 and kept.optim.stage2_iters == 2  # tiny's keys under the file's
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"]["motion_masks"] == "dynpt+flow" and report["config"] == dict(kept)
+    # `flow=` is read (it was dead before: only --flow counted), also from a --config file.
+    bad_flow = tmp_path / "flow.yaml"
+    bad_flow.write_text("flow: raft:none.pth\n")
+    for argv in (["flow=raft:none.pth"], ["--config", str(bad_flow)]):
+        assert main(["run", str(video), "--out", str(tmp_path / "o"), "--preset", str(run_yaml), *argv]) == 2
+        assert "RAFT weights" in capsys.readouterr().err
+    # A key set by its flag and by key=value at once is refused.
+    assert main(["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt),
+                 f"pointmaps.checkpoint={ckpt}"]) == 2
+    assert "set both by a flag" in capsys.readouterr().err
+    assert main(["run", str(video), "--out", str(tmp_path / "o")]) == 2
+    assert "no pointmap checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_out_of_gpu_memory_advises_a_real_setting(inputs, monkeypatch):
+    """The advice names `c4d run`'s own flag and key (it said `--device`, which `c4d run` lacks)."""
+    from c4d_core.errors import UserError
+    from c4d_core.schema import RULES
+    from c4d_pipeline.cli_run import add_arguments
+    from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
+
+    _, video, ckpt, _ = inputs
+    source = Dust3rPointmaps.from_checkpoint(ckpt, "cpu", batch_size=1)
+
+    def out_of_memory(*_):
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory")
+
+    monkeypatch.setattr(source, "_run", out_of_memory)
+    frames = load_video_input(video, size=64, max_frames=2).frames
+    with pytest.raises(UserError) as error:
+        source.pointmaps(frames, np.array([[0, 1]]))
+    message = str(error.value)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    flags = {flag for action in parser._actions for flag in action.option_strings}
+    assert "device=cpu" in message and "device" in RULES["c4d"]
+    assert all(word in flags for word in message.replace("(", " ").split() if word.startswith("--"))

@@ -11,16 +11,16 @@ from dynpt.model import build_model
 def preset(tmp_path):
     (tmp_path / "base.yaml").write_text(
         "seed: 0\nresolution: [256, 256]\ncamera:\n  focal_mm: 35.0\n  sensor_mm: 32.0\n"
-        "blur: false\nname: base\n"
+        "lights:\n  shadows: false\npreset: base\n"
     )
     child = tmp_path / "child.yaml"
-    child.write_text("_base_: base.yaml\nname: child\ncamera:\n  focal_mm: 50.0\n")
+    child.write_text("_base_: base.yaml\npreset: child\ncamera:\n  focal_mm: 50.0\n")
     return child
 
 
 def test_base_is_merged_under_the_child(preset):
     cfg = load_config("datagen", preset)
-    assert cfg.name == "child"
+    assert cfg.preset == "child"
     assert cfg.camera.focal_mm == 50.0
     assert cfg.camera.sensor_mm == 32.0
     assert list(cfg.resolution) == [256, 256]
@@ -28,8 +28,8 @@ def test_base_is_merged_under_the_child(preset):
 
 def test_overrides_set_nested_values_with_yaml_types(preset):
     cfg = load_config("datagen", preset, overrides=["camera.focal_mm=24", "resolution=[64,96]",
-                                                    "blur=true", "seed=7"])
-    assert cfg.camera.focal_mm == 24 and cfg.seed == 7 and cfg.blur is True
+                                                    "lights.shadows=true", "seed=7"])
+    assert cfg.camera.focal_mm == 24 and cfg.seed == 7 and cfg.lights.shadows is True
     assert to_dict(cfg)["resolution"] == [64, 96]
 
 
@@ -41,7 +41,7 @@ def test_misspelled_key_is_an_error_naming_the_key(preset):
 @pytest.mark.parametrize("override, pattern", [
     ("seed=abc", r"`seed` must be int"),
     ("seed=1.5", r"`seed` must be an integer"),
-    ("blur=1", r"`blur` must be bool"),
+    ("lights.shadows=1", r"`lights\.shadows` must be bool"),
     ("camera=3", r"`camera` is a section"),
     ("resolution=64", r"`resolution` must be list"),
 ])

@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+import yaml
 
 from c4d.cli import main
 from datagen import read_scenes
@@ -130,6 +131,27 @@ def test_disk_full_is_one_clear_error_and_leaves_no_partial_shard(tmp_path, monk
     (message,) = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
     assert message.startswith("c4d: error: no space left") and "run the same command again" in message
     assert shard_files(tmp_path) == []
+
+
+def test_corrected_rerun_after_a_failed_one_works(tmp_path, monkeypatch, capsys):
+    """A bad value claims nothing; a run that failed before its first shard leaves no dataset
+    that would refuse the corrected settings; the folder keeps the resolved config."""
+    out = tmp_path / "out"
+    assert main(datagen_args(out, "--resolution", "100000", num_scenes=1)) == 2
+    assert "--resolution '100000'" in capsys.readouterr().err and not out.exists()
+    with monkeypatch.context() as patch:  # fails after the claim, before any shard is complete
+        patch.setattr(tarfile.TarFile, "addfile", lambda *a, **k: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full")))
+        assert main(datagen_args(out, "--frames", "4", num_scenes=1)) == 2
+    assert (out / "dataset-train.json").is_file() and shard_files(out) == []
+    assert main(datagen_args(out, num_scenes=1)) == 0  # other settings: replaces the empty claim
+    assert shard_files(out) == ["train-000000.tar"]
+    assert main(datagen_args(out, "--frames", "4", num_scenes=1)) == 2  # now the folder holds data
+    assert "different dataset" in capsys.readouterr().err
+    kept = yaml.safe_load((out / "config-train.yaml").read_text())
+    assert kept == json.loads((out / "dataset-train.json").read_text())["config"]
+    assert main(["config", "show", "datagen/movi-e", "seed=3", "resolution=[48,64]", "frames=6",
+                 "tracks.num_points=24", "objects.num_static=[2,3]", "objects.num_tossed=[1,1]"]) == 0
+    assert yaml.safe_load(capsys.readouterr().out) == kept
 
 
 @pytest.mark.parametrize("extra, expected", [

@@ -108,20 +108,21 @@ def test_format_1_rgb_png_is_still_read_and_skipped_members_are_not_read(tmp_pat
     t, h, w, _ = scene.rgb.shape
     _, png = cv2.imencode(".png", scene.rgb.reshape(t * h, w, 3)[..., ::-1])  # stacked BGR frames
     format_1 = {("rgb.png" if k == "rgb.npy" else k): (png.tobytes() if k == "rgb.npy" else v)
-                for k, v in sample.items()}
+                for k, v in sample.items() if k != "checksums.json"}  # format 1 had no checksums
     shard = tmp_path / "train-000000.tar"
     with ShardWriter(shard) as writer:
         writer.write(format_1)
         writer.write({**sample, "__key__": "train-00000001"})
     old, new = iter_samples(shard, fields=["rgb", "tracks"])
-    assert set(old) == {"__key__", "__url__", "rgb.png", "tracks.npy.bsz", "intrinsics.npy.bsz",
-                        "meta.json"}  # skipped: depth, flow, ...; intrinsics and meta always read
-    assert set(new) == set(old) - {"rgb.png"} | {"rgb.npy"}
+    assert set(old) == {"__key__", "__url__", "__members__", "rgb.png", "tracks.npy.bsz",
+                        "intrinsics.npy.bsz", "meta.json"}  # skipped: depth, flow, ...
+    assert set(new) == set(old) - {"rgb.png"} | {"rgb.npy", "checksums.json"}
+    assert "depth.npy.bsz" in new["__members__"] and "depth.npy.bsz" not in new
     for raw in (old, new):
         out = decode_scene(raw, fields=["rgb", "tracks"])
         assert np.array_equal(out.rgb, scene.rgb) and np.array_equal(out.tracks, scene.tracks)
         assert out.rgb.flags.writeable and out.depth is None
-    del sample["rgb.npy"]  # e.g. a future format's rgb member
+    del sample["rgb.npy"], sample["checksums.json"]  # e.g. a future format's rgb member
     with pytest.raises(UserError, match="no rgb member"):
         decode_scene(sample, fields=["rgb"])
     assert decode_scene(sample, fields=["tracks"]).rgb is None

@@ -57,3 +57,19 @@ def test_verdict_says_yes_only_when_every_val_set_is_above_the_baseline():
     assert d_acc == ("- DynPT above the baseline on D-ACC: **yes** (movi-e +1.0, movi-e-panning +4.0 points; "
                      "95 % interval over the val scenes: movi-e -0.4 to +2.6, movi-e-panning +1.0 to +7.0, "
                      "so within the scene-to-scene variation)")
+
+
+def test_every_run_folder_keeps_its_resolved_config(demo_out):
+    """The demo, its training run and its datasets each keep the config they ran with, the YAML
+    `c4d config show` prints."""
+    import yaml
+
+    from c4d_core.config import load_config, to_dict
+
+    demo = load_config("demo", "quick")
+    assert yaml.safe_load((demo_out / "demo-config.yaml").read_text()) == to_dict(demo)
+    train = yaml.safe_load((demo_out / "train" / "config.yaml").read_text())
+    assert train["train"]["steps"] == demo.train.steps and train["loss"]["mobility_pos_weight"] == 1.0
+    assert train == to_dict(load_config("dynpt", demo_out / "train" / "config.yaml"))
+    data = yaml.safe_load((demo_out / "data" / "train" / "movi-e" / "config-train.yaml").read_text())
+    assert data["resolution"] == list(demo.data.resolution) and data["frames"] == demo.data.frames

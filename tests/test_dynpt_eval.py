@@ -107,8 +107,9 @@ def test_eval_cli_writes_json_and_markdown(tmp_path, davis_pickle, capsys):
     low, high = report["d_acc_difference_interval"]  # over the 2 videos, resampled
     assert low <= s["d_acc"] - baseline["d_acc"] + 1e-9 and s["d_acc"] - baseline["d_acc"] <= high + 1e-9
     table = (out / "eval.md").read_text()
-    assert table.startswith("| source | tracker | videos | D-ACC") and table in capsys.readouterr().out
-    assert "| checkpoint | 2 |" in table and "| zero motion, all static | 2 |" in table
+    assert table.startswith("| source | tracker | videos | skipped | D-ACC")
+    assert table in capsys.readouterr().out
+    assert "| checkpoint | 2 | 0 |" in table and "| zero motion, all static | 2 | 0 |" in table
     assert "D-ACC minus all-static:" in table and "95 % interval over the videos" in table
     out2 = tmp_path / "eval-davis"
     assert main(["eval", "--ckpt", str(ckpt), "--data", str(davis_pickle), "--mode", "strided",

@@ -54,7 +54,7 @@ def test_total_loss_terms_weights_and_confidence_target():
     # Now 20 px off: confidence target flips to 0 for visible points, mobility weight scales.
     out.coords = [coords + torch.tensor([20.0, 0.0])]
     out.moving_logits = [torch.zeros(1, 3, 2)]
-    total, terms = dynpt_loss(out, batch, LossWeights(mobility=2.0))
+    total, terms = dynpt_loss(out, batch, LossWeights(mobility=2.0, mobility_pos_weight=1.0))
     assert terms["confidence"].item() == pytest.approx(big, rel=1e-3)
     assert terms["mobility"].item() == pytest.approx(2 * 0.6931, abs=1e-3)
     assert terms["track_occluded"].item() == pytest.approx(0.01 * 10.0)

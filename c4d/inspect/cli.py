@@ -89,6 +89,10 @@ def _run_check(args, cfg) -> int:
         print(f"{shard} {key}: {problem}")
     print(f"checked {result.num_samples} scenes: {result.num_bad_samples} with problems "
           f"({len(result.problems)} problems)")
+    if result.num_unverified:
+        log.warning("warning: %d scenes carry no checksums (shards written before format 3), so "
+                    "damaged bytes in them may go unnoticed; regenerate them to add checksums",
+                    result.num_unverified)
     if args.out is not None:
         from c4d_core.files import write_json
 

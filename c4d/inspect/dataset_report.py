@@ -42,6 +42,7 @@ class Sample:
     key: str
     scene: Scene | None
     error: str | None = None
+    verified: bool = True  # False: the sample carries no checksums (format 2 or older)
 
 
 def iter_dataset(source, split: str | None = None, fields=None, full_first: int = 0) -> Iterator[Sample]:
@@ -57,10 +58,13 @@ def iter_dataset(source, split: str | None = None, fields=None, full_first: int 
             for raw in shards.iter_samples(shard):
                 wanted = None if count < full_first else fields
                 count += 1
+                verified = shards.CHECKSUMS in raw
                 try:
-                    yield Sample(str(shard), raw["__key__"], shards.decode_scene(raw, wanted))
+                    scene = shards.decode_scene(raw, wanted)
                 except UserError as exc:
-                    yield Sample(str(shard), raw["__key__"], None, str(exc))
+                    yield Sample(str(shard), raw["__key__"], None, str(exc), verified)
+                else:
+                    yield Sample(str(shard), raw["__key__"], scene, None, verified)
         except UserError as exc:  # the tar itself is truncated or corrupt
             yield Sample(str(shard), "?", None, str(exc))
 
@@ -179,6 +183,7 @@ class CheckResult:
 
     num_samples: int
     problems: list[tuple[str, str, str]]  # (shard, scene key, problem)
+    num_unverified: int = 0  # samples without checksums (shards of format 2 or older)
 
     @property
     def num_bad_samples(self) -> int:
@@ -188,14 +193,15 @@ class CheckResult:
 def check_dataset(source, cfg, split: str | None = None, progress: bool = True) -> CheckResult:
     """Decode and validate every sample of `source`; never stops at the first problem."""
     problems: list[tuple[str, str, str]] = []
-    count = 0
+    count = unverified = 0
     for sample in tqdm(iter_dataset(source, split), desc="check", unit="scene", disable=not progress):
         count += 1
+        unverified += not sample.verified
         if sample.error is not None:
             problems.append((sample.shard, sample.key, sample.error))
             continue
         problems += [(sample.shard, sample.key, p) for p in validate_scene(sample.scene, cfg)]
-    return CheckResult(count, problems)
+    return CheckResult(count, problems, unverified)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,344 @@
+"""Everything GPU-bound, once, in under 8 minutes on one GPU; prints one Markdown table.
+
+    python benchmarks/device_check.py [--out DIR] [--train-seconds 300]   # a CUDA machine
+    python benchmarks/device_check.py --cpu                               # tiny sizes, ~1 minute
+
+Sections, each through the project's own builders (configs, `dynpt.train.Trainer`,
+`c4d_pipeline` DUSt3R network and pointmap source, `c4d_pipeline.optimize.optimise`):
+1. shards: `c4d datagen` train and held-out val sets, generated fresh into --out;
+2. DynPT `paper-gpu-cnn-only` training speed at the paper crop (384x512, 24 frames, 384 tracks,
+   batch 1 per GPU), bf16 autocast and fp32: clips/s over timed optimiser steps after warm-up, on
+   one real batch reused (data loading excluded), and peak GPU memory;
+3. a real training run of a mid-sized config (the CNN-only model at a 256x256 crop, 16 frames,
+   256 tracks, batch 4) for --train-seconds on the fresh shards, data loading included; D-ACC and
+   AJ on the val set before and after (the number of steps is set from a short calibration, so
+   the OneCycle schedule completes);
+4. DUSt3R ViT-L 512 DPT (random weights saved and reloaded in the official checkpoint layout)
+   pair forward through `Dust3rPointmaps` at 512x384 under its autocast: seconds per pair at
+   batch 1 and at the batch it picks from free memory, peak memory;
+5. C4D stage 1 (GA + CMA + CTS) seconds per iteration (median) at 24 and 90 frames, 512x288,
+   ground-truth pointmaps and flow of an analytic box scene (`c4d_pipeline.synthetic`).
+
+A section that fails puts its one-line error in the table and the run goes on; the exit status
+is then 1. `--cpu` hides any GPU and shrinks every size (CI runs it: tests/test_device_check.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROWS: list[tuple[str, str, str, str]] = []  # (check, setting, result, peak memory)
+
+
+def row(check: str, setting: str, result: str, memory: str = "-") -> None:
+    ROWS.append((check, setting, result, memory))
+    print(f"[device_check] {check} | {setting} | {result} | {memory}", file=sys.stderr, flush=True)
+
+
+def gib(nbytes: int | None) -> str:
+    return "-" if nbytes is None else f"{nbytes / 2**30:.2f} GiB"
+
+
+class Sizes:
+    """Every size of the check: the real ones, or tiny ones for --cpu."""
+
+    def __init__(self, cpu: bool, train_seconds: float | None):
+        self.cpu = cpu
+        self.scenes = (2, 1) if cpu else (48, 8)  # train, val
+        self.resolution, self.frames = (64, 8) if cpu else (128, 24)
+        self.workers = 1 if cpu else (os.cpu_count() or 1)  # datagen processes
+        tiny = ["data.crop_size=[32,32]", "data.num_frames=6", "data.num_tracks=12"]
+        self.speed_preset = "tiny-cpu" if cpu else "paper-gpu-cnn-only"
+        self.speed = tiny if cpu else []  # the paper crop: the config's own sizes
+        self.speed_steps = (1, 3) if cpu else (3, 10)  # warm-up, timed
+        self.train_preset = "tiny-cpu" if cpu else "paper-gpu-cnn-only"
+        self.train = tiny + ["data.num_workers=0", "eval.resolution=[64,64]", "eval.num_tracks=32"] if cpu else [
+            "data.crop_size=[256,256]", "data.num_frames=16", "data.num_tracks=256",
+            "train.batch_size=4", "train.total_batch=4", "data.num_workers=8",
+            "eval.resolution=[256,256]", "eval.num_tracks=256"]
+        self.train_seconds = train_seconds or (8.0 if cpu else 300.0)
+        self.dust3r_hw = (48, 64) if cpu else (384, 512)
+        self.c4d_hw, self.c4d_iters = ((24, 32), 3) if cpu else ((288, 512), 6)
+        self.c4d_workers = 1 if cpu else (os.cpu_count() or 1)  # processes making C4D's inputs
+
+
+# --- 1. shards ----------------------------------------------------------------------------------
+
+
+def make_shards(out: Path, sizes: Sizes) -> tuple[Path, Path]:
+    from c4d.cli import main
+
+    start = time.perf_counter()
+    dirs = []
+    for split, count, seed in (("train", sizes.scenes[0], 0), ("val", sizes.scenes[1], 1)):
+        folder = out / "shards" / split
+        code = main(["datagen", "--num-scenes", str(count), "--out", str(folder), "--split", split,
+                     "--seed", str(seed), "--resolution", str(sizes.resolution),
+                     "--frames", str(sizes.frames), "--scenes-per-shard", "1",
+                     "--workers", str(sizes.workers)])
+        if code:
+            raise RuntimeError(f"c4d datagen exited with {code}")
+        dirs.append(folder)
+    row("shards (c4d datagen)", f"{sizes.scenes[0]} train + {sizes.scenes[1]} val scenes, "
+        f"{sizes.resolution}x{sizes.resolution}, {sizes.frames} frames",
+        f"{time.perf_counter() - start:.1f} s")
+    return dirs[0], dirs[1]
+
+
+# --- 2. DynPT training speed --------------------------------------------------------------------
+
+
+def _trainer(preset: str, overrides: list[str], train_dir: Path, out: Path, val_dir: Path | None = None):
+    from c4d_core.config import load_config
+    from dynpt.train import Trainer
+
+    extra = [f"eval.source={val_dir}"] if val_dir else ["eval.every=0"]
+    cfg = load_config("dynpt", preset, overrides=[f"data.sources=[{train_dir}]", f"train.out_dir={out}",
+                                                  *overrides, *extra])
+    return Trainer(cfg)
+
+
+def training_speed(train_dir: Path, out: Path, sizes: Sizes) -> None:
+    import itertools
+
+    from dynpt.device import peak_memory, reset_peak_memory
+
+    warm, timed = sizes.speed_steps
+    for bf16 in (True, False):
+        label = "bf16" if bf16 else "fp32"
+        trainer = _trainer(sizes.speed_preset, [*sizes.speed, f"train.bf16={str(bf16).lower()}",
+                                                f"train.steps={warm + timed + 3}", "train.total_batch=1",
+                                                "train.batch_size=1"], train_dir, out / f"speed-{label}")
+        try:
+            d = trainer.cfg.data
+            setting = (f"{sizes.speed_preset}, crop {d.crop_size[0]}x{d.crop_size[1]}, {d.num_frames} "
+                       f"frames, {d.num_tracks} tracks, batch 1, {label}"
+                       f"{'' if trainer.amp_dtype or not bf16 else ' (no autocast on this device)'}")
+            batches = itertools.repeat(next(iter(trainer.loader)))
+            for _ in range(warm):
+                trainer.train_step(batches)
+            _sync(trainer.device)
+            reset_peak_memory(trainer.device)
+            start = time.perf_counter()
+            for _ in range(timed):
+                trainer.train_step(batches)
+            _sync(trainer.device)
+            seconds = (time.perf_counter() - start) / timed
+            row("DynPT training speed", setting, f"{1 / seconds:.2f} clips/s ({seconds * 1e3:.0f} ms/step)",
+                gib(peak_memory(trainer.device)))
+        finally:
+            trainer.close()
+
+
+def _sync(device) -> None:
+    import torch
+
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+# --- 3. a real training run ---------------------------------------------------------------------
+
+
+def training_run(train_dir: Path, val_dir: Path, out: Path, sizes: Sizes) -> None:
+    import math
+
+    from dynpt.device import peak_memory, reset_peak_memory
+    from dynpt.evaluate import evaluate_model
+
+    calib = _trainer(sizes.train_preset, [*sizes.train, "train.steps=100"], train_dir, out / "calibrate")
+    try:
+        batches = iter(calib.loader)
+        calib.train_step(batches)  # warm-up (workers start, kernels are chosen)
+        start = time.perf_counter()
+        for _ in range(3):
+            calib.train_step(batches)
+        per_step = (time.perf_counter() - start) / 3
+        del batches  # its loader workers stop before the run starts its own
+    finally:
+        calib.close()
+    steps = max(3, int(sizes.train_seconds / per_step))
+    trainer = _trainer(sizes.train_preset, [*sizes.train, f"train.steps={steps}", f"eval.every={steps}",
+                                            f"train.ckpt_every={steps}"], train_dir, out / "run", val_dir)
+    try:
+        ev = trainer.cfg.eval
+        before = evaluate_model(trainer.model, trainer.val_scenes, ev, trainer.device,
+                                query_mode=ev.query_mode)["summary"]
+        reset_peak_memory(trainer.device)
+        start = time.perf_counter()
+        after = trainer.fit()
+        seconds = time.perf_counter() - start
+    finally:
+        trainer.close()
+    d, t = trainer.cfg.data, trainer.cfg.train
+    setting = (f"{sizes.train_preset}, crop {d.crop_size[0]}x{d.crop_size[1]}, {d.num_frames} frames, "
+               f"{d.num_tracks} tracks, batch {t.total_batch}, {steps} steps")
+    row("DynPT training run", setting, f"{seconds:.0f} s ({steps * t.total_batch / seconds:.2f} clips/s "
+        "incl. data and validation)", gib(peak_memory(trainer.device)))
+    for key, name in (("d_acc", "D-ACC"), ("average_jaccard", "AJ")):
+        b, a = before.get(key, math.nan), after.get(key, math.nan)
+        row(f"DynPT {name} (val)", f"{len(trainer.val_scenes)} held-out scenes, before -> after training",
+            f"{100 * b:.1f} -> {100 * a:.1f}")
+
+
+# --- 4. DUSt3R pair forward ---------------------------------------------------------------------
+
+
+def dust3r_forward(out: Path, sizes: Sizes) -> None:
+    import numpy as np
+    import torch
+
+    from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
+    from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
+    from c4d_pipeline.pointmap_training import save_official
+    from dynpt.device import peak_memory, reset_peak_memory
+
+    torch.manual_seed(0)
+    cfg = Dust3rConfig() if not sizes.cpu else Dust3rConfig(
+        enc_embed_dim=32, enc_depth=2, enc_num_heads=2, dec_embed_dim=32, dec_depth=2, dec_num_heads=2,
+        dpt_layer_dims=(8, 8, 16, 16), dpt_feature_dim=16, dpt_last_dim=8)
+    h, w = sizes.dust3r_hw
+    path = save_official(Dust3rNet(cfg), (h, w), out / "dust3r_random.pth")
+    name = "ViT-L 512 DPT" if not sizes.cpu else "tiny DPT"
+    frames = np.random.default_rng(0).integers(0, 256, (9, h, w, 3), dtype=np.uint8)
+    edges = np.stack([np.arange(8), np.arange(1, 9)], axis=1)
+    source = Dust3rPointmaps.from_checkpoint(path)
+    for batch in (1, 0):
+        source.batch_size = batch
+        source.pointmaps(frames, edges[:1])  # warm-up
+        _sync(source.device)
+        reset_peak_memory(source.device)
+        start = time.perf_counter()
+        source.pointmaps(frames, edges)
+        _sync(source.device)
+        seconds = (time.perf_counter() - start) / len(edges)
+        chosen = batch or source._auto_batch(h, w)
+        dtype = str(source.amp_dtype).replace("torch.", "") if source.amp_dtype else "fp32"
+        row("DUSt3R pair forward", f"{name} ({path.name}, official layout), {w}x{h}, batch {chosen}"
+            f"{'' if batch else ' (automatic' + (': from free memory)' if source.device.type == 'cuda' else ')')}"
+            f", {dtype}", f"{seconds * 1e3:.0f} ms/pair",
+            gib(peak_memory(source.device)))
+
+
+# --- 5. C4D stage 1 -----------------------------------------------------------------------------
+
+_SCENE = None  # the box scene of a C4D input worker (built once per worker, deterministic)
+
+
+def _c4d_worker_init(frames: int, height: int, width: int) -> None:
+    global _SCENE
+    from c4d_pipeline.synthetic import make_box_scene
+
+    _SCENE = make_box_scene(frames, height, width, num_tracks=256, seed=0)
+
+
+def _c4d_inputs(edges):
+    """Ground-truth pointmaps (pts_i, pts_j, conf_i, conf_j) and flow of `edges` (E,2) of the
+    worker's scene: float32 (E,H,W,3) x 2, (E,H,W) x 2, (E,H,W,2)."""
+    from c4d_pipeline.flow import build_flow
+    from c4d_pipeline.pointmaps import GroundTruthPointmaps
+
+    pw = GroundTruthPointmaps(_SCENE, static_bias=False).pointmaps(_SCENE.rgb, edges)
+    flow = build_flow("gt", scene=_SCENE).flow(_SCENE.rgb, [tuple(map(int, e)) for e in edges])
+    return pw.pts_i, pw.pts_j, pw.conf_i, pw.conf_j, flow
+
+
+def c4d_stage1(sizes: Sizes) -> None:
+    """Inputs from `sizes.c4d_workers` spawned processes (the ground truth of 850 edges at
+    512x288 is minutes of one core; --cpu: this process), then `optimise` on the GPU."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    import numpy as np
+    import torch
+
+    from c4d_core.config import load_config
+    from c4d_pipeline.optimize import optimise
+    from c4d_pipeline.pointmaps import PairwisePointmaps
+    from c4d_pipeline.scene_graph import graph_from_config
+    from dynpt.device import peak_memory, reset_peak_memory
+
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    h, w = sizes.c4d_hw
+    for frames in (24, 90):
+        cfg = load_config("c4d", "default", overrides=[f"optim.stage1_iters={sizes.c4d_iters}",
+                                                       "optim.stage2_iters=0", "weights.pts=0"])
+        edges = graph_from_config(frames, cfg.graph)
+        start = time.perf_counter()
+        if sizes.c4d_workers == 1:
+            _c4d_worker_init(frames, h, w)
+            parts = [_c4d_inputs(edges)]
+        else:
+            with ProcessPoolExecutor(sizes.c4d_workers, mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=_c4d_worker_init, initargs=(frames, h, w)) as pool:
+                parts = list(pool.map(_c4d_inputs, np.array_split(edges, sizes.c4d_workers)))
+        pts_i, pts_j, conf_i, conf_j, flows = (np.concatenate(a) for a in zip(*parts))
+        pw = PairwisePointmaps(edges=edges, pts_i=pts_i, pts_j=pts_j, conf_i=conf_i, conf_j=conf_j)
+        inputs_s = time.perf_counter() - start
+        reset_peak_memory(device)
+        result = optimise(pw, frames, cfg, flows=flows, device=str(device))
+        per_iter = float(np.median(result.history["losses"]["stage1"]["seconds"]))
+        row("C4D stage 1 (GA+CMA+CTS)", f"{frames} frames, {w}x{h}, {len(edges)} edges, {device.type}, "
+            f"median of {sizes.c4d_iters} iterations (inputs {inputs_s:.0f} s)",
+            f"{per_iter * 1e3:.0f} ms/iter ({300 * per_iter:.0f} s for 300, extrapolated)",
+            gib(peak_memory(device)))
+        del pw, flows, result, parts
+
+
+# --- main ---------------------------------------------------------------------------------------
+
+
+def table() -> str:
+    lines = ["| check | setting | result | peak memory |", "|---|---|---|---|"]
+    lines += [f"| {' | '.join(cell.replace('|', '/') for cell in r)} |" for r in ROWS]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cpu", action="store_true", help="hide the GPU; tiny sizes (about a minute)")
+    parser.add_argument("--out", type=Path, help="working folder (default: a temporary one, removed)")
+    parser.add_argument("--train-seconds", type=float, help="length of the training run (300; --cpu 8)")
+    args = parser.parse_args(argv)
+    if args.cpu:
+        os.environ["CUDA_VISIBLE_DEVICES"] = ""  # before torch is imported
+    import torch
+
+    torch.manual_seed(0)
+    sizes = Sizes(args.cpu, args.train_seconds)
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
+    with tempfile.TemporaryDirectory(prefix="device-check-") as tmp:
+        out = args.out or Path(tmp)
+        start, failed = time.perf_counter(), 0
+        shards = None
+        sections = [("shards (c4d datagen)", lambda: make_shards(out, sizes)),
+                    ("DynPT training speed", lambda: training_speed(shards[0], out, sizes)),
+                    ("DynPT training run", lambda: training_run(*shards, out, sizes)),
+                    ("DUSt3R pair forward", lambda: dust3r_forward(out, sizes)),
+                    ("C4D stage 1 (GA+CMA+CTS)", lambda: c4d_stage1(sizes))]
+        for name, section in sections:
+            if name.startswith("DynPT") and shards is None:
+                failed += 1
+                row(name, "SKIPPED", "no shards")
+                continue
+            try:
+                result = section()
+                shards = result if result is not None else shards
+            except Exception as exc:  # noqa: BLE001 -- one line in the table, then the next section
+                failed += 1
+                message = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
+                row(name, "FAILED", f"{type(exc).__name__}: {message}")
+        total = time.perf_counter() - start
+    print(f"device_check: torch {torch.__version__}, GPU {gpu}, {'--cpu, ' if args.cpu else ''}"
+          f"{total:.0f} s in all, {failed} section(s) failed\n")
+    print(table())
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

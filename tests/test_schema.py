@@ -1,0 +1,165 @@
+"""The settings schema: one set of keys in YAML and code, range checks at load time, `c4d config show`."""
+
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+from c4d.cli import main
+from c4d_core.config import config_dir, load_config, section_defaults, to_dict
+from c4d_core.errors import UserError
+from c4d_core.schema import ROOTS, RULES, leaf_keys, validate
+from c4d_pipeline.motion_mask import MotionMaskConfig
+from dynpt.losses import LossWeights
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("group", sorted(ROOTS))
+def test_every_schema_key_is_in_the_root_preset_and_its_default_is_valid(group):
+    """The rules and the root preset list the same keys, and every default passes its rule."""
+    root = to_dict(load_config(group, ROOTS[group]))
+    keys = set(leaf_keys(root))
+    assert keys == set(RULES[group]), (sorted(keys - set(RULES[group])), sorted(set(RULES[group]) - keys))
+    validate(group, root)
+
+
+@pytest.mark.parametrize("group", sorted(ROOTS))
+def test_every_preset_sets_only_schema_keys_and_passes_the_rules(group):
+    for path in sorted((config_dir() / group).rglob("*.yaml")):
+        if path.parent.name == group:  # presets (model/ holds fragments of dynpt presets)
+            cfg = to_dict(load_config(group, path.stem))
+            assert set(leaf_keys(cfg)) == set(RULES[group]), path
+
+
+@pytest.mark.parametrize("cls, group, section", [
+    (MotionMaskConfig, "c4d", "motion_mask.c4d"), (LossWeights, "dynpt", "loss")])
+def test_dataclasses_have_the_yaml_keys_and_defaults(cls, group, section):
+    fields = {f.name: f.default for f in dataclasses.fields(cls)}
+    assert fields == section_defaults(group, section)
+    for name, value in fields.items():  # the field's type is the rule's
+        kind = RULES[group][f"{section}.{name}"].kind
+        assert isinstance(value, {"int": int, "float": float, "bool": bool}[kind]), name
+
+
+def test_review_findings_of_the_motion_mask_section():
+    # one Sampson threshold: the dataclass default is the YAML's (they were 0.5 and 1.0)
+    assert MotionMaskConfig().sampson_threshold_px == load_config("c4d", "default").motion_mask.c4d.sampson_threshold_px
+    # the fields missing from the YAML are keys now
+    cfg = load_config("c4d", "default", overrides=["motion_mask.c4d.noise_sigmas=3", "motion_mask.c4d.max_pair_offset=1",
+                                                   "motion_mask.c4d.judge_out_of_view=true"])
+    mask = MotionMaskConfig(**to_dict(cfg.motion_mask.c4d))
+    assert (mask.noise_sigmas, mask.max_pair_offset, mask.judge_out_of_view) == (3, 1, True)
+
+
+@pytest.mark.parametrize("group, override, message", [
+    ("datagen", "resolution=[7,7]", "`resolution` = [7, 7] is out of range: it must be a list of 2 integers in [8, 4096]"),
+    ("datagen", "resolution=[0,0]", "`resolution` = [0, 0]"),
+    ("datagen", "resolution=[64,64,3]", "`resolution` = [64, 64, 3]"),
+    ("datagen", "frames=1", "`frames` = 1 is out of range: it must be an integer >= 2"),
+    ("datagen", "split=dev", "must be one of: train, val, test"),
+    ("datagen", "objects.num_static=[20,10]", "non-decreasing"),
+    ("datagen", "objects.static_region=[[1,1,1],[0,0,0]]", "`objects.static_region`"),
+    ("datagen", "lights.sun_elevation_deg=[30,100]", "in [0, 90]"),
+    ("datagen", "camera.zfar=0.05", "`camera.znear` = 0.1 must be < `camera.zfar` = 0.05"),
+    ("dynpt", "train.batch_size=0", "`train.batch_size` = 0 is out of range: it must be an integer >= 1"),
+    ("dynpt", "data.num_frames=0", "`data.num_frames` = 0"),
+    ("dynpt", "data.num_frames=1", "`data.num_frames` = 1 is out of range: it must be an integer >= 2"),
+    ("dynpt", "data.crop_size=[100000,100000]", "`data.crop_size` = [100000, 100000]"),
+    ("dynpt", "data.augment.hflip_prob=1.5", "in [0, 1]"),
+    ("dynpt", "data.weights=[1.0]", "one entry per `data.sources`"),
+    ("dynpt", "model.hidden_dim=33", "multiple of `model.num_heads`"),
+    ("dynpt", "eval.query_mode=last", "one of: first, strided"),
+    ("c4d", "motion_mask.c4d.sampson_threshold_px=-1", "`motion_mask.c4d.sampson_threshold_px` = -1"),
+    ("c4d", "optim.betas=[0.9]", "a list of 2 numbers"),
+    ("c4d", "video.stride=0", "`video.stride` = 0"),
+    ("demo", "recon.num_scenes=100", "must be <= `data.val_scenes`"),
+    ("demo", "data.frames=1", "`data.frames` = 1"),
+    ("inspect", "samples=-1", "`samples` = -1"),
+    ("pointmaps", "train.batch_size=0", "`train.batch_size` = 0"),
+])
+def test_out_of_range_values_are_one_line_errors(group, override, message):
+    with pytest.raises(UserError) as error:
+        load_config(group, ROOTS[group], overrides=[override])
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_nan_and_wrong_list_items_are_refused():
+    for override in ("optim.lr=.nan", "resolution=[64.5,64]", "data.presets=[1]"):
+        group = {"optim": "c4d", "resolution": "datagen", "data": "demo"}[override.split(".")[0].split("=")[0]]
+        with pytest.raises(UserError, match="out of range"):
+            load_config(group, ROOTS[group], overrides=[override])
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["datagen", "--num-scenes", "1", "--resolution", "100000"], "--resolution '100000'"),
+    (["datagen", "--num-scenes", "1", "resolution=[0,0]"], "`resolution` = [0, 0]"),
+    (["datagen", "--num-scenes", "1", "resolution=[64,64,3]"], "`resolution` = [64, 64, 3]"),
+    (["datagen", "--num-scenes", "1", "--frames", "0"], "`frames` = 0"),
+    (["datagen", "--num-scenes", "0"], "--num-scenes must be at least 1"),
+    (["train", "--config", "tiny-cpu", "train.batch_size=0"], "`train.batch_size` = 0"),
+    (["train", "--config", "tiny-cpu", "data.num_frames=1"], "`data.num_frames` = 1"),
+    (["train", "--config", "tiny-cpu", "data.crop_size=[100000,100000]"], "`data.crop_size`"),
+    (["pretrain-pointmaps", "train.batch_size=0"], "`train.batch_size` = 0"),
+    (["demo", "--quick", "data.frames=1"], "`data.frames` = 1"),
+])
+def test_commands_refuse_bad_values_before_writing_anything(argv, message, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+    flag = {"datagen": ["--out", str(out)], "demo": ["--out", str(out)]}.get(argv[0], [f"train.out_dir={out}"])
+    assert main([*argv, *flag]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_config_show_prints_what_runs(capsys, tmp_path):
+    assert main(["config", "show", "c4d/tiny", "optim.lr=0.02", "motion_mask.c4d.noise_sigmas=3"]) == 0
+    shown = yaml.safe_load(capsys.readouterr().out)
+    assert shown == to_dict(load_config("c4d", "tiny", overrides=["optim.lr=0.02", "motion_mask.c4d.noise_sigmas=3"]))
+    assert shown["optim"]["stage1_iters"] == 60 and shown["optim"]["lr"] == 0.02  # tiny over the defaults
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("_base_: datagen/movi-f\nframes: 6\n")  # a user's file over a shipped preset, by name
+    assert main(["config", "show", f"datagen/{mine}"]) == 0
+    shown = yaml.safe_load(capsys.readouterr().out)
+    assert shown["frames"] == 6 and shown["blur"]["max_shutter"] == 2.0 and shown["preset"] == "movi-f"
+    assert main(["config", "show", "dynpt/tiny-cpu", "train.batch_size=0"]) == 2
+    assert main(["config", "show", "nope/x"]) == 2
+    assert "GROUP/PRESET" in capsys.readouterr().err
+
+
+def test_base_by_name_must_name_a_group(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("_base_: tiny\n")
+    with pytest.raises(UserError, match="<group>/<preset>"):
+        load_config("c4d", bad)
+    bad.write_text("_base_: c4d/nope\n")
+    with pytest.raises(UserError, match="unknown c4d preset 'nope'"):
+        load_config("c4d", bad)
+
+
+# `key.sub=value` placeholders in prose, not settings
+PLACEHOLDERS = {"key.sub", "a.b"}
+OVERRIDE = re.compile(r"(?<![\w.\-/$])([a-z][a-z0-9_]*(?:\.[a-z0-9_]+)+)=(?!=)")
+
+
+def _documented_keys():
+    files = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md")), *sorted((REPO / "configs").rglob("*.yaml"))]
+    for package in ("c4d", "datagen", "dynpt", "c4d_pipeline", "benchmarks"):
+        files += sorted((REPO / package).rglob("*.py"))
+    for path in files:
+        for key in OVERRIDE.findall(path.read_text()):
+            if key not in PLACEHOLDERS:
+                yield path.relative_to(REPO), key
+
+
+def test_docs_and_code_name_only_real_keys():
+    """Every `a.b=...` override in README, docs, presets and code names a key (or section) of
+    some group's schema (docs/TRAINING.md once named `pointmaps.checkpoint=`, no key then)."""
+    known = {prefix for rules in RULES.values() for key in rules
+             for prefix in (".".join(key.split(".")[:n]) for n in range(1, key.count(".") + 2))}
+    found = list(_documented_keys())
+    assert len(found) > 50  # the pattern finds the overrides
+    assert [f"{path}: {key}" for path, key in found if key not in known] == []
