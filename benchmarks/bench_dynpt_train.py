@@ -19,7 +19,9 @@ Usage:
   far beyond a 2-core CPU for the full model; the default is a reduced 8,128,128,64.
   `--models tiny,tiny-2x --clip 8,64,64,32` compares the demo's model with
   configs/dynpt/tiny-cpu-2x.yaml, which gets the clip at twice the height and width (it trains
-  on 2x crops of the same videos).
+  on 2x crops of the same videos). `--models ft-mobility,ft-mobility-fusion,ft-full` times the
+  fine-tuning recipes from CoTracker3's weights (the optimiser gets `train.lr_scale`'s groups:
+  frozen parts take no gradient).
 """
 
 from __future__ import annotations
@@ -46,6 +48,12 @@ MODELS = {  # name -> (preset, overrides, frame size factor: the clip's H and W 
     "cnn-only": ("paper-gpu-cnn-only", [], 1),
     "full": ("paper-gpu", ["model.encoder_3d.random_init=true",
                            "model.encoder_3d.require_checkpoint=false"], 1),
+    # the fine-tuning recipes from CoTracker3's weights (random weights here: the cost is the same)
+    "ft-mobility": ("finetune-mobility", [], 1),
+    "ft-mobility-fusion": ("finetune-mobility-fusion", ["model.encoder_3d.random_init=true",
+                                                        "model.encoder_3d.require_checkpoint=false"], 1),
+    "ft-full": ("finetune-full", ["model.encoder_3d.random_init=true",
+                                  "model.encoder_3d.require_checkpoint=false"], 1),
 }
 
 
@@ -110,11 +118,12 @@ def step_times(model: str, steps: int, clip: str) -> dict:
     """Seconds per train step and peak RSS on a (T,H,W,N) clip (a fresh process by `main`)."""
     from dynpt.losses import LossWeights, dynpt_loss
     from dynpt.model import build_model
+    from dynpt.train import param_groups
 
     preset, overrides, size_factor = MODELS[model]
     cfg = load_config("dynpt", preset, overrides=overrides)
     net = build_model(cfg.model).train()
-    opt = torch.optim.AdamW([p for p in net.parameters() if p.requires_grad], lr=1e-4)
+    opt = torch.optim.AdamW(param_groups(net, cfg.train.lr, cfg.train.lr_scale))  # train.lr_scale's groups
     T, H, W, N = (int(v) for v in clip.split(","))
     H, W, B = H * size_factor, W * size_factor, 1
     gen = torch.Generator().manual_seed(0)
@@ -125,17 +134,19 @@ def step_times(model: str, steps: int, clip: str) -> dict:
               "visible": torch.rand(B, T, N, generator=gen) > 0.3,
               "moving": torch.rand(B, T, N, generator=gen) > 0.8}
     weights = LossWeights.from_config(cfg.loss)
-    times = []
+    times, cpu = [], []
     for _ in range(steps + 1):  # the first step warms up allocators
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         loss, _ = dynpt_loss(net(video, queries), target, weights)
         loss.backward()
         opt.step()
         opt.zero_grad(set_to_none=True)
         times.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - cpu_start)
     return {"model": model, "B": B, "T": T, "HxW": f"{H}x{W}", "N": N,
             "trainable_params": sum(p.numel() for p in net.parameters() if p.requires_grad),
             "step_s": statistics.median(times[1:]), "all_step_s": times[1:],
+            "step_cpu_s": statistics.median(cpu[1:]),
             "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
 
 
@@ -189,7 +200,8 @@ def main() -> None:
         r = results[-1]
         print(f"train step {r['model']:>4} (B={r['B']} T={r['T']} {r['HxW']} N={r['N']}, "
               f"{r['trainable_params'] / 1e6:.2f}M trainable): median {r['step_s']:.2f} s "
-              f"(runs {[round(t, 2) for t in r['all_step_s']]}), peak RSS {r['peak_rss_gib']:.2f} GiB")
+              f"(runs {[round(t, 2) for t in r['all_step_s']]}), CPU {r['step_cpu_s']:.2f} s, "
+              f"peak RSS {r['peak_rss_gib']:.2f} GiB")
     for r in results[1:]:
         print(f"ratio {r['model']}/{results[0]['model']} step time: "
               f"{r['step_s'] / results[0]['step_s']:.1f}x")

@@ -14,8 +14,9 @@ Sections, each through the project's own builders (configs, `dynpt.train.Trainer
    AJ on the val set before and after (the number of steps is set from a short calibration, so
    the OneCycle schedule completes);
 4. DUSt3R ViT-L 512 DPT (random weights saved and reloaded in the official checkpoint layout)
-   pair forward through `Dust3rPointmaps` at 512x384 under its autocast: seconds per pair at
-   batch 1 and at the batch it picks from free memory, peak memory;
+   pair forward through `Dust3rPointmaps` at 512x384, in float32 (the default) and, on a GPU, with
+   `pointmaps.precision=bf16`: seconds per pair at batch 1 and at the batch it picks from free
+   memory, peak memory;
 5. C4D stage 1 (GA + CMA + CTS) seconds per iteration (median) at 24 and 90 frames, 512x288,
    ground-truth pointmaps and flow of an analytic box scene (`c4d_pipeline.synthetic`).
 
@@ -207,22 +208,24 @@ def dust3r_forward(out: Path, sizes: Sizes) -> None:
     name = "ViT-L 512 DPT" if not sizes.cpu else "tiny DPT"
     frames = np.random.default_rng(0).integers(0, 256, (9, h, w, 3), dtype=np.uint8)
     edges = np.stack([np.arange(8), np.arange(1, 9)], axis=1)
-    source = Dust3rPointmaps.from_checkpoint(path)
-    for batch in (1, 0):
-        source.batch_size = batch
-        source.pointmaps(frames, edges[:1])  # warm-up
-        _sync(source.device)
-        reset_peak_memory(source.device)
-        start = time.perf_counter()
-        source.pointmaps(frames, edges)
-        _sync(source.device)
-        seconds = (time.perf_counter() - start) / len(edges)
-        chosen = batch or source._auto_batch(h, w)
-        dtype = str(source.amp_dtype).replace("torch.", "") if source.amp_dtype else "fp32"
-        row("DUSt3R pair forward", f"{name} ({path.name}, official layout), {w}x{h}, batch {chosen}"
-            f"{'' if batch else ' (automatic' + (': from free memory)' if source.device.type == 'cuda' else ')')}"
-            f", {dtype}", f"{seconds * 1e3:.0f} ms/pair",
-            gib(peak_memory(source.device)))
+    fp32 = Dust3rPointmaps.from_checkpoint(path)  # the default precision, as the official inference
+    sources = [fp32] + ([Dust3rPointmaps(fp32.net, precision="bf16")] if fp32.device.type == "cuda" else [])
+    for source in sources:
+        for batch in (1, 0):
+            source.batch_size = batch
+            source.pointmaps(frames, edges[:1])  # warm-up
+            _sync(source.device)
+            reset_peak_memory(source.device)
+            start = time.perf_counter()
+            source.pointmaps(frames, edges)
+            _sync(source.device)
+            seconds = (time.perf_counter() - start) / len(edges)
+            chosen = batch or source._auto_batch(h, w)
+            dtype = str(source.amp_dtype).replace("torch.", "") if source.amp_dtype else "fp32"
+            how = "" if batch else (" (automatic: from free memory)" if source.device.type == "cuda"
+                                    else " (automatic)")
+            row("DUSt3R pair forward", f"{name} ({path.name}, official layout), {w}x{h}, batch {chosen}"
+                f"{how}, {dtype}", f"{seconds * 1e3:.0f} ms/pair", gib(peak_memory(source.device)))
 
 
 # --- 5. C4D stage 1 -----------------------------------------------------------------------------

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     log.info("loading the pointmap network from %s", cfg.pointmaps.checkpoint)
     source = Dust3rPointmaps.from_checkpoint(cfg.pointmaps.checkpoint, cfg.device, cfg.pointmaps.batch,
-                                             progress=True)
+                                             progress=True, precision=cfg.pointmaps.precision)
     tracker = None
     if cfg.tracker.checkpoint:
         from dynpt.inference import load_tracker

@@ -31,7 +31,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from c4d_core.errors import UserError
-from dynpt.dust3r_checkpoint import OfficialCheckpoint, block_count, read_checkpoint
+from dynpt.dust3r_checkpoint import OfficialCheckpoint, block_count, head_count, read_checkpoint
 from dynpt.vit_encoder import (LAYER_NORM_EPS, Attention, Dust3rEncoder, Mlp, RoPE2D, split_heads,
                                encoder_kwargs)
 
@@ -305,7 +305,7 @@ def config_from_checkpoint(ckpt: OfficialCheckpoint) -> Dust3rConfig:
     if "decoder_embed.weight" not in sd or "dec_blocks.0.norm1.weight" not in sd:
         raise UserError(f"{str(ckpt.path)!r} has no DUSt3R decoder (decoder_embed, dec_blocks); pass a "
                         "DUSt3R, MASt3R or MonST3R checkpoint, not an encoder-only or CroCo file")
-    enc = encoder_kwargs(sd, args)
+    enc = encoder_kwargs(ckpt)
     dec_dim = sd["decoder_embed.weight"].shape[0]
     if "downstream_head1.proj.weight" in sd:
         head, channels = "linear", sd["downstream_head1.proj.weight"].shape[0] // enc["patch_size"] ** 2
@@ -327,7 +327,7 @@ def config_from_checkpoint(ckpt: OfficialCheckpoint) -> Dust3rConfig:
     if depth_mode[0] not in ("exp", "square", "linear") or conf_mode[0] != "exp":
         raise UserError(f"unsupported output modes depth_mode={depth_mode}, conf_mode={conf_mode}; "
                         "official checkpoints use ('exp', -inf, inf) and ('exp', 1, inf)")
-    dec_heads = int(args.get("dec_num_heads", max(1, dec_dim // 64)))
+    dec_heads = head_count(ckpt, "dec_num_heads", dec_dim)
     return Dust3rConfig(
         enc_embed_dim=enc["embed_dim"], enc_depth=enc["depth"], enc_num_heads=enc["num_heads"],
         enc_mlp_ratio=enc["mlp_ratio"], dec_embed_dim=dec_dim,

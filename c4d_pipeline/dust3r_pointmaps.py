@@ -4,9 +4,13 @@ Implements `c4d_pipeline.pointmaps.PointmapSource`: frames uint8 (T,H,W,3), alre
 resolution (`c4d_pipeline.video_input.dust3r_resize`: H, W multiples of 16), and directed edges
 (E,2) go in; `PairwisePointmaps` come out, pts_i / pts_j both in view i's camera frame, conf >= 1.
 
-Pairs run in batches: on a GPU under autocast (bfloat16 where supported, else float16; the heads
-stay in float32) with a batch size estimated from free GPU memory and halved on out-of-memory; on
-a CPU in float32 with a fixed batch size.
+Pairs run in batches, in float32 by default as the official inference does (`precision='fp32'`,
+config key `pointmaps.precision`). `precision='bf16'` runs the encoder and decoders under bfloat16
+autocast on a GPU (the heads stay in float32): faster and smaller, but pointmaps move by about
+1 % per pixel (median; up to 5 % at the 99th percentile) from the float32 result (measured with
+the same autocast on the CPU, docs/RESULTS.md section 5), so it is an explicit choice; on a CPU
+it is ignored. On a GPU the batch size is
+estimated from free memory and halved on out-of-memory; on a CPU it is fixed.
 """
 
 from __future__ import annotations
@@ -21,8 +25,8 @@ from tqdm import tqdm
 from c4d_core.errors import UserError
 from c4d_pipeline.dust3r_net import Dust3rNet, load_dust3r
 from c4d_pipeline.pointmaps import PairwisePointmaps, sanitize
-from dynpt.device import (autocast, bf16_supported, free_memory, inference_autocast_dtype, pair_batch_size,
-                          pin_memory)
+from dynpt.device import (autocast, bf16_supported, free_memory, pair_batch_size, pin_memory,
+                          pointmap_autocast_dtype)
 
 log = logging.getLogger(__name__)
 
@@ -48,14 +52,15 @@ class Dust3rPointmaps:
 
     net: the network (eval mode); device: torch device (default cuda if available, else cpu);
     batch_size: pairs per forward pass, or 0 for automatic (GPU: from free memory; CPU: 2);
-    progress: show a progress bar over the pairs.
+    progress: show a progress bar over the pairs; precision: 'fp32' (default, the official
+    inference) or 'bf16' (bfloat16 autocast on a GPU, float32 heads; ignored on a CPU).
     """
 
     def __init__(self, net: Dust3rNet, device: str | torch.device | None = None, batch_size: int = 0,
-                 progress: bool = False):
+                 progress: bool = False, precision: str = "fp32"):
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.net = net.to(self.device).eval()
-        self.amp_dtype = inference_autocast_dtype(self.device.type, bf16_supported(self.device))
+        self.amp_dtype = pointmap_autocast_dtype(self.device.type, precision, bf16_supported(self.device))
         if batch_size < 0:
             raise UserError(f"pointmap batch size must be >= 0 (0 = automatic), got {batch_size}")
         self.batch_size = batch_size
@@ -63,13 +68,13 @@ class Dust3rPointmaps:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device=None, batch_size: int = 0,
-                        progress: bool = False) -> "Dust3rPointmaps":
+                        progress: bool = False, precision: str = "fp32") -> "Dust3rPointmaps":
         """Load an official DUSt3R/MASt3R/MonST3R checkpoint file (see `load_dust3r`)."""
         net, report = load_dust3r(path)
         if report.ignored_keys:
             log.info("pointmap checkpoint %s: ignored %d tensors not used for pointmaps",
                      path, len(report.ignored_keys))
-        return cls(net, device, batch_size, progress)
+        return cls(net, device, batch_size, progress, precision)
 
     @property
     def image_size(self) -> int:

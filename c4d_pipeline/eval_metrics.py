@@ -6,7 +6,12 @@ Conventions follow the evaluation code of MonST3R that C4D reports against:
   pose = S @ pose with S = [s R | t], i.e. rotation R R_p, centre s R c_p + t.
   ATE = RMSE of the aligned centre errors; RPE between frames t and t + 1 (all such pairs):
   E = (G_t^-1 G_t+1)^-1 (A_t^-1 A_t+1), RPE trans = RMSE of |trans(E)| and RPE rot = RMSE of the
-  rotation angle of E in degrees. ATE and RPE trans are in ground-truth units.
+  rotation angle of E in degrees. ATE and RPE trans are in ground-truth units. These equal evo's
+  APE / RPE (`evo.core.metrics`, delta 1 frame, RMSE) after `align(correct_scale=True)`; tested
+  against evo in tests/test_c4d_eval_metrics.py. Both trajectories' rotations are first projected
+  onto SO(3) in float64 (poses saved in float32 are orthonormal only to ~1e-7, and
+  arccos((tr R - 1) / 2) of such a matrix has a floor of ~0.01 degrees near the identity), and the
+  angle is atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2), accurate at every angle.
 - Depth: one alignment per sequence, fitted on all valid pixels of all frames at once (valid:
   finite prediction, finite ground truth > 0 and below `max_depth` if given), in the L1 sense
   (MonST3R's least-absolute-deviation fit, here solved exactly rather than by Adam):
@@ -50,10 +55,22 @@ def _check_poses(pred: np.ndarray, gt: np.ndarray) -> None:
         raise UserError("a trajectory contains NaN or infinite values; check the reconstruction's poses_tum.txt")
 
 
+def orthonormalise(poses: np.ndarray) -> np.ndarray:
+    """float64 copy of poses (...,4,4) whose rotation blocks are the nearest rotations (SVD polar
+    factor, determinant +1) to the given ones."""
+    poses = np.array(poses, dtype=np.float64)
+    u, _, vt = np.linalg.svd(poses[..., :3, :3])
+    signs = np.ones(u.shape[:-2] + (1, 3))  # (...,1,3): scales u's columns
+    signs[..., 0, 2] = np.sign(np.linalg.det(u @ vt))  # -1 where the polar factor is a reflection
+    poses[..., :3, :3] = (u * signs) @ vt
+    return poses
+
+
 def align_trajectory(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, float]:
-    """Predicted camera-to-world poses (T,4,4) Sim(3)-aligned to gt (T,4,4); returns (aligned, s)."""
+    """Predicted camera-to-world poses (T,4,4) Sim(3)-aligned to gt (T,4,4); returns (aligned, s),
+    aligned in float64 with orthonormal rotations."""
     _check_poses(pred, gt)
-    pred, gt = pred.astype(np.float64), gt.astype(np.float64)
+    pred, gt = orthonormalise(pred), orthonormalise(gt)
     s, rot, trans = umeyama(pred[:, :3, 3], gt[:, :3, 3], with_scale=True)
     aligned = pred.copy()
     aligned[:, :3, :3] = rot @ pred[:, :3, :3]  # (T,3,3)
@@ -62,15 +79,19 @@ def align_trajectory(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, floa
 
 
 def rotation_angle_deg(rot: np.ndarray) -> np.ndarray:
-    """Angle in degrees of rotations (...,3,3)."""
+    """Angle in degrees of rotations (...,3,3): atan2(sin, cos) with sin = |vee(R - R^T)| / 2 and
+    cos = (tr R - 1) / 2 (no loss of precision near 0 or 180 degrees, unlike arccos alone)."""
+    rot = np.asarray(rot, np.float64)
+    axis = np.stack([rot[..., 2, 1] - rot[..., 1, 2], rot[..., 0, 2] - rot[..., 2, 0],
+                     rot[..., 1, 0] - rot[..., 0, 1]], -1)  # (...,3) = 2 sin(angle) * unit axis
     cos = (np.trace(rot, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return np.degrees(np.arctan2(np.linalg.norm(axis, axis=-1) / 2.0, cos))
 
 
 def pose_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     """ATE, RPE trans (ground-truth units), RPE rot (degrees) after Sim(3) alignment, and the scale."""
     aligned, scale = align_trajectory(pred, gt)
-    gt = gt.astype(np.float64)
+    gt = orthonormalise(gt)
     ate = np.sqrt(np.mean(np.sum((aligned[:, :3, 3] - gt[:, :3, 3]) ** 2, -1)))
     rel_pred = invert_pose(aligned[:-1]) @ aligned[1:]  # (T-1,4,4) motion t -> t+1
     rel_gt = invert_pose(gt[:-1]) @ gt[1:]

@@ -7,11 +7,15 @@ the points from their camera `optim.world_scale` = 0.5: pair pointmaps of unit m
 scales of geometric mean 0.5), and CMA measures flow in pixels of a `cma.reference_size` = 512 image.
 Both: Adam, lr 0.01 (decayed to `lr_min` by `schedule`), `stage1_iters` / `stage2_iters` steps.
 
-Memory: GA and CMA are evaluated `edge_chunk` edges at a time. The per-frame quantities (world
-points, camera points, poses, intrinsics, edge similarities) are computed once per iteration, the
-chunks back-propagate into detached copies of them, and one final backward carries the summed
-gradients to the parameters; the result equals the unchunked gradient while only one chunk's
-(e,H*W,3) temporaries are alive.
+The terms are `objectives.OBJECTIVES` (name, weight key, stage, inputs); a stage iterates over the
+registered terms of its stage whose weight is > 0 and whose inputs were given, so a new loss is one
+registered function plus one `weights:` key.
+
+Memory: per-edge terms (GA, CMA) are evaluated `edge_chunk` edges at a time. The per-frame and
+per-edge quantities they share (world and camera points, edge similarities, ego projections) are
+computed once per iteration (`StageState.shared`), the chunks back-propagate into detached copies
+of them, and one final backward carries the summed gradients to the parameters; the result equals
+the unchunked gradient while only one chunk's (e,3,H*W) temporaries are alive.
 """
 
 from __future__ import annotations
@@ -60,17 +64,27 @@ def learning_rate(iteration: int, total: int, lr: float, lr_min: float, schedule
 
 
 class _Inputs:
-    """The observations on the optimisation device, flattened to P = H*W pixels."""
+    """The observations on the optimisation device, channels-first over P = H*W pixels.
+
+    ei, ej (E,) the edges' frames; views: for view i and view j of every edge, (frames (E,),
+    pointmaps (E,3,P) (a transposed view of the pair's (E,P,3) array: no copy), GA weights = log
+    confidence (E,P)); with flow: target (E,2,P) pixel + flow i->j, static (E,P) static in frame i
+    and finite flow, num_static. `available`: the observation names the objectives may ask for.
+    """
 
     def __init__(self, pw, flows, static_masks, device):
-        e = pw.num_edges
+        e = self.num_edges = pw.num_edges
+        h, w = pw.image_size
+        self.num_pixels = h * w
         self.ei = torch.from_numpy(pw.edges[:, 0]).to(device)
         self.ej = torch.from_numpy(pw.edges[:, 1]).to(device)
-        self.pts_i = torch.from_numpy(pw.pts_i).reshape(e, -1, 3).to(device)  # (E,P,3)
-        self.pts_j = torch.from_numpy(pw.pts_j).reshape(e, -1, 3).to(device)
-        self.w_i = torch.from_numpy(pw.conf_i).reshape(e, -1).log().to(device)  # (E,P)
-        self.w_j = torch.from_numpy(pw.conf_j).reshape(e, -1).log().to(device)
-        self.flow = self.static = None
+        self.views = [
+            (frames, torch.from_numpy(pts).reshape(e, -1, 3).to(device).transpose(1, 2),
+             torch.from_numpy(conf).reshape(e, -1).log().to(device))
+            for frames, pts, conf in ((self.ei, pw.pts_i, pw.conf_i), (self.ej, pw.pts_j, pw.conf_j))
+        ]
+        self.available = {"pointmaps"}
+        self.target = self.static = None
         if flows is not None:
             flow = torch.from_numpy(np.ascontiguousarray(flows, dtype=np.float32)).reshape(e, -1, 2)
             finite = torch.isfinite(flow).all(-1)  # (E,P)
@@ -79,9 +93,13 @@ class _Inputs:
             else:
                 per_frame = torch.from_numpy(np.asarray(static_masks, bool)).flatten(1)  # (T,P)
                 static = per_frame[self.ei.cpu()]  # (E,P) static in frame i of each edge
-            self.flow = torch.nan_to_num(flow, 0.0, 0.0, 0.0).to(device)
+            v, u = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+            pixels = torch.stack([u, v], -1).reshape(-1, 2).float()  # (P,2)
+            target = pixels + torch.nan_to_num(flow, 0.0, 0.0, 0.0)  # (E,P,2)
+            self.target = target.transpose(1, 2).contiguous().to(device)  # (E,2,P)
             self.static = (static & finite).to(device)  # (E,P) static in frame i
             self.num_static = max(int(self.static.sum()), 1)
+            self.available.add("flow")
             if int(self.static.sum()) == 0:
                 log.warning("CMA: no static pixel with valid flow; the term contributes nothing")
 
@@ -128,49 +146,131 @@ def rescale_world(init: Initialisation, image_size: tuple[int, int], world_scale
                    edge_scale=init.edge_scale * factor, edge_translation=init.edge_translation * factor)
 
 
-@dataclass
-class _StepCfg:
-    edge_chunk: int  # edges per chunk, 0 = all
-    cma_max_px: float  # CMA ignores flow errors above this many reference pixels
-    cma_px_scale: float  # reference pixels per image pixel
+def _shared_cam(state):
+    return (state.params.camera_points_channels_first(),)  # (T,3,P)
 
 
-def _stage1_step(params: SceneParams, data: _Inputs, weights, cfg: _StepCfg, pixels) -> dict:
-    """One forward/backward of GA + CMA + CTS, edge-chunked (module docstring). Returns losses."""
-    num_frames = params.num_frames
-    num_edges, num_pix = data.pts_i.shape[:2]
-    use_cma = weights.cma > 0 and data.flow is not None
-    cam = params.camera_points()  # (T,H,W,3)
-    world = params.world_points(cam).reshape(num_frames, num_pix, 3)
-    pose, intr = params.cam_to_world(), params.intrinsics()
-    scale, rot, trans = params.edge_similarities()
-    shared = [world, scale, rot, trans] + ([cam.reshape(num_frames, num_pix, 3), pose, intr] if use_cma else [])
-    leaves = [x.detach().requires_grad_() for x in shared]
-    l_world, l_scale, l_rot, l_trans = leaves[:4]
-    chunk = cfg.edge_chunk if cfg.edge_chunk > 0 else num_edges
-    ga_total = cma_total = 0.0
-    for start in range(0, num_edges, chunk):
-        sl = slice(start, start + chunk)
-        ga = objectives.global_alignment_sum(
-            l_world, data.ei[sl], data.ej[sl], data.pts_i[sl], data.pts_j[sl], data.w_i[sl],
-            data.w_j[sl], l_scale[sl], l_rot[sl], l_trans[sl]) / (num_edges * num_pix)
-        loss = weights.ga * ga
-        ga_total += float(ga.detach())
-        if use_cma:
-            l_cam, l_pose, l_intr = leaves[4:]
-            cma = objectives.camera_motion_sum(
-                l_cam, l_pose, l_intr, data.ei[sl], data.ej[sl], data.flow[sl], data.static[sl],
-                pixels, cfg.cma_max_px, cfg.cma_px_scale) / (2 * data.num_static)
-            loss = loss + weights.cma * cma
-            cma_total += float(cma.detach())
+def _shared_rotations(state):
+    return (state.params.rotations(),)  # (T,3,3) camera-to-world, shared by the terms of an iteration
+
+
+def _shared_world(state):
+    (cam,) = state.shared_value("cam")
+    (rot,) = state.shared_value("rotations")
+    return (torch.baddbmm(state.params.trans[..., None], rot, cam),)  # (T,3,P)
+
+
+def _shared_edge_similarity(state):
+    scale, rot, trans = state.params.edge_similarities()
+    return scale[:, None, None] * rot, trans  # (E,3,3), (E,3)
+
+
+def _shared_ego_projection(state):
+    params, data = state.params, state.data
+    (rot,) = state.shared_value("rotations")
+    return objectives.ego_projection(rot, params.trans, params.intrinsics(), data.ei, data.ej)
+
+
+_SHARED = {"cam": _shared_cam, "rotations": _shared_rotations, "world": _shared_world, "edge_similarity": _shared_edge_similarity,
+           "ego_projection": _shared_ego_projection}
+
+
+class StageState:
+    """What the objectives of one iteration see (`objectives.OBJECTIVES`): the parameters, the
+    observations, the CMA settings, the PTS targets (stage 2) and `shared(name)`: the tensors of
+    `_SHARED[name]` computed once per iteration and handed out as detached leaves, so that edge
+    chunks accumulate their gradients there; `backward` carries them to the parameters."""
+
+    def __init__(self, params: SceneParams, data: _Inputs, cma_max_px: float = 50.0,
+                 cma_px_scale: float = 1.0, pts_targets=None):
+        self.params, self.data = params, data
+        self.cma_max_px, self.cma_px_scale = cma_max_px, cma_px_scale
+        self.pts_targets = pts_targets
+        self._shared: dict[str, tuple[tuple, tuple]] = {}
+
+    def shared_value(self, name: str) -> tuple:
+        """The tensors of `name`, attached to the parameters' graph (for building other shared ones)."""
+        if name not in self._shared:
+            values = _SHARED[name](self)
+            self._shared[name] = (values, tuple(v.detach().requires_grad_() for v in values))
+        return self._shared[name][0]
+
+    def shared(self, name: str) -> tuple:
+        """The tensors of `name` as leaves (what per-edge terms differentiate)."""
+        self.shared_value(name)
+        return self._shared[name][1]
+
+    def backward(self, losses: list[torch.Tensor]) -> None:
+        """One backward of the accumulated leaf gradients and of `losses` to the parameters; clears."""
+        pairs = [(v, leaf.grad) for values, leaves in self._shared.values()
+                 for v, leaf in zip(values, leaves) if leaf.grad is not None]
+        tensors = [v for v, _ in pairs] + losses
+        if tensors:
+            torch.autograd.backward(tensors, [g for _, g in pairs] + [torch.ones_like(x) for x in losses])
+        self._shared.clear()
+
+
+def active_objectives(stage: int, weights, available: set[str]) -> list[objectives.Objective]:
+    """The registered objectives of `stage` with weight > 0 whose inputs are `available`."""
+    active = []
+    for term in objectives.OBJECTIVES:
+        if term.stage != stage:
+            continue
+        if term.weight not in weights:
+            raise UserError(f"the config has no weights.{term.weight} (weight of the {term.name} objective)")
+        if float(weights[term.weight]) > 0 and set(term.inputs) <= available:
+            active.append(term)
+    return active
+
+
+def stage_step(state: StageState, terms: list[objectives.Objective], weights, edge_chunk: int) -> dict:
+    """One forward/backward of the weighted `terms`, per-edge terms `edge_chunk` edges at a time
+    (0 = all; module docstring). Leaves the gradients in the parameters; returns the losses."""
+    values = {term.name: 0.0 for term in terms}
+    per_edge = [t for t in terms if t.per_edge]
+    num_edges = state.data.num_edges
+    chunk = edge_chunk if edge_chunk > 0 else num_edges
+    for start in range(0, num_edges if per_edge else 0, chunk):
+        edges = slice(start, min(start + chunk, num_edges))
+        loss = 0.0
+        for term in per_edge:
+            value = term.fn(state, edges)
+            values[term.name] += float(value.detach())
+            loss = loss + float(weights[term.weight]) * value
         loss.backward()
-    cts = objectives.camera_smoothness(params.rotations(), params.trans)
-    pairs = [(x, leaf.grad) for x, leaf in zip(shared, leaves) if leaf.grad is not None]
-    tensors = [x for x, _ in pairs] + ([weights.cts * cts] if weights.cts > 0 else [])
-    grads = [g for _, g in pairs] + ([torch.ones_like(cts)] if weights.cts > 0 else [])
-    torch.autograd.backward(tensors, grads)
-    total = weights.ga * ga_total + weights.cma * cma_total + weights.cts * float(cts.detach())
-    return {"total": total, "ga": ga_total, "cma": cma_total, "cts": float(cts.detach())}
+    once = []
+    for term in terms:
+        if not term.per_edge:
+            value = term.fn(state)
+            values[term.name] = float(value.detach())
+            once.append(float(weights[term.weight]) * value)
+    state.backward(once)
+    values["total"] = sum(float(weights[t.weight]) * values[t.name] for t in terms)
+    return values
+
+
+class Stage1:
+    """Stage 1 of `optimise` as a callable: built from the observations and the config (same
+    arguments), `step()` makes one forward/backward of GA + CMA + CTS (gradients left in
+    `params`) and returns its losses. Used by `optimise` and by timing scripts."""
+
+    def __init__(self, pw: PairwisePointmaps, num_frames: int, cfg, flows=None, static_masks=None,
+                 device: str = "cpu"):
+        h, w = pw.image_size
+        opt_cfg = cfg.optim
+        init = rescale_world(initialise(pw, num_frames, shared_focal=opt_cfg.shared_focal),
+                             (h, w), opt_cfg.world_scale)
+        self.params = SceneParams(init.depth, init.cam_to_world, init.focal, init.edge_scale,
+                                  init.edge_rotation, init.edge_translation,
+                                  shared_focal=opt_cfg.shared_focal).to(device)
+        self.data = _Inputs(pw, flows if cfg.weights.cma > 0 else None, static_masks, device)
+        px_scale = cfg.cma.reference_size / max(h, w) if cfg.cma.reference_size > 0 else 1.0
+        self.state = StageState(self.params, self.data, float(cfg.cma.max_px), px_scale)
+        self.weights, self.edge_chunk = cfg.weights, int(opt_cfg.edge_chunk)
+        self.terms = active_objectives(1, cfg.weights, self.data.available)
+
+    def step(self) -> dict:
+        return stage_step(self.state, self.terms, self.weights, self.edge_chunk)
 
 
 def _run_adam(params_list, steps, cfg, step_fn, stage: str, progress: bool) -> dict:
@@ -216,54 +316,43 @@ def optimise(
     torch.manual_seed(int(cfg.seed))
     opt_cfg, weights = cfg.optim, cfg.weights
     history: dict = {"seconds": {}, "losses": {}}
-    h, w = pw.image_size
-    px_scale = cfg.cma.reference_size / max(h, w) if cfg.cma.reference_size > 0 else 1.0
-    step_cfg = _StepCfg(opt_cfg.edge_chunk, cfg.cma.max_px, px_scale)
 
     start = time.perf_counter()
-    init = rescale_world(initialise(pw, num_frames, shared_focal=opt_cfg.shared_focal),
-                         (h, w), opt_cfg.world_scale)
-    params = SceneParams(init.depth, init.cam_to_world, init.focal, init.edge_scale,
-                         init.edge_rotation, init.edge_translation,
-                         shared_focal=opt_cfg.shared_focal).to(device)
-    data = _Inputs(pw, flows if weights.cma > 0 else None, static_masks, device)
-    v, u = torch.meshgrid(torch.arange(h, device=device), torch.arange(w, device=device), indexing="ij")
-    pixels = torch.stack([u, v], -1).reshape(-1, 2).float()  # (P,2)
+    stage1 = Stage1(pw, num_frames, cfg, flows, static_masks, device)
+    params = stage1.params
     history["seconds"]["init"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    history["losses"]["stage1"] = _run_adam(
-        list(params.parameters()), opt_cfg.stage1_iters, opt_cfg,
-        lambda: _stage1_step(params, data, weights, step_cfg, pixels), "stage 1 (GA+CMA+CTS)", progress)
+    history["losses"]["stage1"] = _run_adam(list(params.parameters()), opt_cfg.stage1_iters, opt_cfg,
+                                            stage1.step, "stage 1 (GA+CMA+CTS)", progress)
     history["seconds"]["stage1"] = time.perf_counter() - start
     depth_stage1 = params.depth().detach().cpu().numpy().astype(np.float32)
 
-    run_pts = weights.pts > 0 and opt_cfg.stage2_iters > 0 and tracks is not None
+    available = {"pointmaps"} | ({"tracks"} if tracks is not None else set())
+    terms = active_objectives(2, weights, available) if opt_cfg.stage2_iters > 0 else []
     if weights.pts > 0 and tracks is None:
         log.warning("no tracks given: stage 2 (PTS) skipped")
-    if run_pts:
-        start = time.perf_counter()
-        pc = cfg.pts
-        with torch.no_grad():
-            trk = torch.as_tensor(np.asarray(tracks, np.float32), device=device)
-            vis = torch.as_tensor(np.asarray(visible, bool), device=device) & torch.isfinite(trk).all(-1)
-            targets, has_target = objectives.pts_targets(
-                params.world_points(), torch.nan_to_num(trk, -1.0), vis, pc.window, pc.extend,
-                pc.kernel, pc.lam, pc.knn)
-        history["seconds"]["pts_targets"] = time.perf_counter() - start
-        history["pts_frames"] = int(has_target.sum())
+    if terms:
+        pts_targets = None
+        if tracks is not None:  # the PTS targets: smoothed tracks spread to every pixel, built once
+            start = time.perf_counter()
+            pc = cfg.pts
+            with torch.no_grad():
+                trk = torch.as_tensor(np.asarray(tracks, np.float32), device=device)
+                vis = torch.as_tensor(np.asarray(visible, bool), device=device) & torch.isfinite(trk).all(-1)
+                pts_targets = objectives.pts_targets(
+                    params.world_points(), torch.nan_to_num(trk, -1.0), vis, pc.window, pc.extend,
+                    pc.kernel, pc.lam, pc.knn)
+            history["seconds"]["pts_targets"] = time.perf_counter() - start
+            history["pts_frames"] = int(pts_targets[1].sum())
         for p in params.parameters():
             p.requires_grad_(False)
         params.log_depth.requires_grad_(True)
-
-        def stage2_step():
-            pts = objectives.point_smoothness(params.world_points(), targets, has_target)
-            (weights.pts * pts).backward()
-            return {"total": weights.pts * float(pts.detach()), "pts": float(pts.detach())}
-
+        state = StageState(params, stage1.data, pts_targets=pts_targets)
         start = time.perf_counter()
         history["losses"]["stage2"] = _run_adam([params.log_depth], opt_cfg.stage2_iters, opt_cfg,
-                                                stage2_step, "stage 2 (PTS)", progress)
+                                                lambda: stage_step(state, terms, weights, 0),
+                                                "stage 2 (PTS)", progress)
         history["seconds"]["stage2"] = time.perf_counter() - start
 
     with torch.no_grad():

@@ -13,6 +13,7 @@ Sources:
 from __future__ import annotations
 
 import logging
+import zlib
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -134,6 +135,15 @@ def _smooth_field(rng: np.random.Generator, height: int, width: int, cells: int)
     return (field - field.mean()) / max(float(field.std()), 1e-6)
 
 
+def scene_key(scene) -> int:
+    """CRC-32 of a scene's cameras (cam_to_world, intrinsics) and depth: a seed component that is
+    equal for the same scene however it was loaded and differs between scenes."""
+    key = 0
+    for array in (scene.cam_to_world, scene.intrinsics, scene.depth):
+        key = zlib.crc32(np.ascontiguousarray(array, np.float32).tobytes(), key)
+    return key
+
+
 class GroundTruthPointmaps:
     """Pairwise pointmaps computed from a datagen `Scene`'s depth, cameras and object motion.
 
@@ -153,7 +163,9 @@ class GroundTruthPointmaps:
       noise is off), so noisier pixels weigh less, as a network's confidence would.
     - both pointmaps of the pair are multiplied by one random scale, log-uniform in
       [1/scale_range, scale_range].
-    Deterministic: pair (i, j) draws from a generator seeded by (seed, i, j).
+    Deterministic: pair (i, j) draws from a generator seeded by (seed, scene key, i, j), the scene
+    key a CRC-32 of the scene's cameras and depth (`scene_key`), so every scene of a data set gets
+    its own noise fields, confidences and pair scales.
     """
 
     def __init__(
@@ -187,6 +199,7 @@ class GroundTruthPointmaps:
         self.static_bias = bool(static_bias)
         self.bias_fit = bias_fit
         self.seed = int(seed)
+        self.scene_key = scene_key(scene)
 
     @classmethod
     def from_config(cls, scene, cfg) -> "GroundTruthPointmaps":
@@ -253,7 +266,7 @@ class GroundTruthPointmaps:
         out = {k: np.empty((len(edges), h, w, 3), np.float32) for k in ("pts_i", "pts_j")}
         out |= {k: np.empty((len(edges), h, w), np.float32) for k in ("conf_i", "conf_j")}
         for e, (i, j) in enumerate(edges):
-            rng = np.random.default_rng([self.seed, int(i), int(j)])
+            rng = np.random.default_rng([self.seed, self.scene_key, int(i), int(j)])
             pts_i, conf_i = self._noisy(rng, self._camera_points(i))
             pts_j, conf_j = self._noisy(rng, self._camera_points(j))
             pts_j = geometry.transform_points(self.relative_pose(i, j), pts_j)

@@ -5,7 +5,8 @@ this module adds DUSt3R's geometric preprocessing (dust3r `load_images`):
 - size 512 (or any other long side S): resize so the long side is S (LANCZOS when shrinking,
   BICUBIC when enlarging; new size round(x * S / long side)), centre-crop each side down to a
   multiple of 16, and make square results 4:3 (e.g. 512x384) unless `square_ok`;
-- size 224: resize the short side to 224 and centre-crop 224x224.
+- size 224: resize so the long side is round(224 * aspect ratio) (the short side becomes 224),
+  then centre-crop 224x224.
 The resize-and-crop is also returned as an intrinsics transform, so ground truth can follow it.
 """
 
@@ -50,15 +51,15 @@ def plan_preprocessing(source_hw: tuple[int, int], size: int, square_ok: bool = 
     H, W = source_hw
     if size < PATCH:
         raise UserError(f"network image size {size} is smaller than one {PATCH}-pixel patch; use 512 or 224")
-    if size == 224:  # short side to 224, then a centre square
-        scale = 224 / min(H, W)
-        rh, rw = round(H * scale), round(W * scale)
-        cy, cx = rh // 2, rw // 2
-        half_h = half_w = 112
+    # The long side's new length first, then each side as round(side * long / max(H, W)), in this
+    # order of operations, as dust3r's: at exact .5 ties (a 402x384 image at 224) another order
+    # rounds the other way and the resized image gains a column.
+    long_side = round(224 * max(W / H, H / W)) if size == 224 else size
+    rh, rw = round(H * long_side / max(H, W)), round(W * long_side / max(H, W))
+    cy, cx = rh // 2, rw // 2
+    if size == 224:  # short side to (about) 224, then the centre square
+        half_h = half_w = min(cx, cy)
     else:
-        scale = size / max(H, W)
-        rh, rw = round(H * scale), round(W * scale)
-        cy, cx = rh // 2, rw // 2
         half_w, half_h = ((2 * cx) // PATCH) * PATCH // 2, ((2 * cy) // PATCH) * PATCH // 2
         if rw == rh and not square_ok:
             half_h = (3 * half_w // 4) // (PATCH // 2) * (PATCH // 2)  # 4:3, whole patches
@@ -74,7 +75,7 @@ def dust3r_resize(frames: np.ndarray, size: int = 512, square_ok: bool = False
     """uint8 (T,H,W,3) -> uint8 (T,h,w,3) DUSt3R-preprocessed frames, and the mapping used."""
     plan = plan_preprocessing(frames.shape[1:3], size, square_ok)
     rh, rw = plan.resized_hw
-    shrink = rh * rw < frames.shape[1] * frames.shape[2]
+    shrink = max(frames.shape[1:3]) > max(rh, rw)  # dust3r: LANCZOS when the long side shrinks
     method = Image.Resampling.LANCZOS if shrink else Image.Resampling.BICUBIC
     x0, y0 = plan.crop_xy
     oh, ow = plan.output_hw

@@ -71,6 +71,17 @@ def save_atomic(path: str | os.PathLike, payload) -> Path:
     return path
 
 
+def read_tensor_file(path: Path, kind: str, missing_hint: str, damaged_hint: str):
+    """`torch.load(path, weights_only=True)` on the CPU; a missing or unreadable file is a one-line
+    `UserError` ("<kind> checkpoint ... does not exist; <missing_hint>" / "...; <damaged_hint>")."""
+    if not path.is_file():
+        raise UserError(f"{kind} checkpoint {str(path)!r} does not exist; {missing_hint}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
+        raise UserError(f"cannot read {str(path)!r} as a {kind} checkpoint ({_reason(exc)}); {damaged_hint}") from exc
+
+
 def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -> dict:
     """Read a DynPT checkpoint: dict with 'format', 'config', 'model', 'step', 'extra' (on CPU).
 
@@ -104,7 +115,7 @@ def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -
 
 # keys that only steer inference or name a file: they may differ without changing the weights
 _NON_ARCHITECTURE = {"window_stride", "train_iters", "eval_iters", "resolution", "visibility_threshold",
-                     "checkpoint", "require_checkpoint", "random_init"}
+                     "checkpoint", "require_checkpoint", "random_init", "init_from"}
 
 
 def _differences(stored, wanted, prefix: str = "") -> list[str]:
@@ -121,7 +132,7 @@ def check_config(stored: Mapping, model_cfg: Mapping, path: Path) -> None:
     if wanted["encoder_3d"].get("checkpoint"):  # sizes come from that file, as recorded in `stored`
         sizes = ("patch_size", "embed_dim", "depth", "num_heads", "mlp_ratio", "rope_freq")
         wanted["encoder_3d"].update({k: stored["encoder_3d"][k] for k in sizes})
-    diffs = _differences(stored, wanted)
+    diffs = _differences(plain_config(stored), wanted)
     if diffs:
         raise UserError(f"checkpoint {str(path)!r} was trained with another model config: "
                         f"{'; '.join(diffs[:5])}; use the checkpoint's own config or start a new run")

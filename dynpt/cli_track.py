@@ -22,7 +22,8 @@ log = logging.getLogger("c4d.track")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("video", help="video file or folder of frames (sorted by name)")
-    parser.add_argument("--ckpt", required=True, help="DynPT checkpoint written by `c4d train`")
+    parser.add_argument("--ckpt", required=True, help="DynPT checkpoint written by `c4d train`, or "
+                        "cotracker3:PATH for a CoTracker3 release file (mobility untrained)")
     parser.add_argument("--out", required=True, help="output folder (tracks.npz, overlay.mp4)")
     parser.add_argument("--queries", help=".npy or text file of (N,3) queries (t, x, y) in pixels; "
                         "default: the paper's grid sampling on the first frame")
@@ -38,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "cells widen until at most this many points are sampled")
     parser.add_argument("--max-points", type=int, help="track at most this many points jointly "
                         "(bounds memory; default all together)")
+    parser.add_argument("--support-grid", type=int, default=0, help="also track an NxN grid of "
+                        "frame-0 points with the queries, then drop them (CoTracker3's predictor: 6) [0]")
     parser.add_argument("--no-backward", action="store_true",
                         help="track only forward from each query frame")
     parser.add_argument("--device", help="torch device (default: cuda if available, else cpu)")
@@ -75,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
         value = getattr(args, flag)
         if value is not None and value < 1:
             raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {value}")
+    if args.support_grid < 0 or args.support_grid == 1:
+        raise UserError("--support-grid must be 0 (none) or at least 2")
     source = read_video(args.video, stride=args.stride, max_frames=args.max_frames)
     video = resize_long_side(source, args.size, args.max_size)
     (T, H0, W0), (H, W) = source.shape[:3], video.shape[1:3]
@@ -92,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
              tracker.device)
     start = time.perf_counter()
     result = tracker.track(video, queries, grid_size=grid, seed=args.seed,
-                           backward=not args.no_backward, max_points=args.max_points)
+                           backward=not args.no_backward, max_points=args.max_points,
+                           support_grid=args.support_grid)
     seconds = time.perf_counter() - start
     log.info("tracked %d points in %.1f s (%.2f s per frame)", result.tracks.shape[1], seconds,
              seconds / T)

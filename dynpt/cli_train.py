@@ -19,6 +19,8 @@ from c4d_core.system import configure_threads
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_training_arguments(parser, "dynpt")
+    parser.add_argument("--init", metavar="cotracker3:PATH", default=None,
+                        help="start from CoTracker3's released weights (same as model.init_from=...)")
     parser.add_argument("--nproc-per-node", type=int, default=1, metavar="N",
                         help="DDP processes on this machine (one per GPU; gloo on CPUs); for "
                         "several machines run torchrun itself (docs/TRAINING.md)")
@@ -27,12 +29,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dynpt.train import check_schedule, train
 
+    if args.init:
+        args.overrides = [*args.overrides, f"model.init_from={args.init}"]
     cfg = training_config("dynpt", args)
     if args.nproc_per_node < 1:
         raise UserError(f"--nproc-per-node must be at least 1, got {args.nproc_per_node}")
     if args.nproc_per_node > 1 and "LOCAL_RANK" not in os.environ:
         check_schedule(cfg.train, args.nproc_per_node)  # a mistake: one line, no process started
-        child = ["--config", args.config, *args.overrides, *(["--resume"] if args.resume else [])]
+        child = ["--config", args.config, *args.overrides, *init, *(["--resume"] if args.resume else [])]
         return launch(args.nproc_per_node, child, verbose=getattr(args, "verbose", False))
     configure_threads(workers=cfg.data.num_workers, threads=cfg.threads)
     train(cfg, resume=args.resume)

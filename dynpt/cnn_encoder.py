@@ -25,10 +25,10 @@ class ResidualBlock(nn.Module):
             )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = F.relu(self.norm1(self.conv1(x)))
-        y = F.relu(self.norm2(self.conv2(y)))
+        y = F.relu(self.norm1(self.conv1(x)), inplace=True)
+        y = F.relu(self.norm2(self.conv2(y)), inplace=True)
         skip = x if self.downsample is None else self.downsample(x)
-        return F.relu(skip + y)
+        return F.relu(skip + y, inplace=True)
 
 
 class CNNEncoder(nn.Module):
@@ -37,12 +37,15 @@ class CNNEncoder(nn.Module):
     A 7x7 stride-2 stem, then four stages of two residual blocks at strides 2, 4, 8, 16 (widths
     `widths`); all four stage outputs are resized to stride 4, concatenated and fused by a 3x3 conv
     (to 2*out_dim, instance norm, ReLU) and a 1x1 conv (to out_dim). H and W must be multiples of 16.
+    `align_corners` is the resize convention (True in CoTracker3, for its weights).
     """
 
     stride = 4
 
-    def __init__(self, widths: Sequence[int] = (64, 96, 128, 128), out_dim: int = 128):
+    def __init__(self, widths: Sequence[int] = (64, 96, 128, 128), out_dim: int = 128,
+                 align_corners: bool = False):
         super().__init__()
+        self.align_corners = align_corners
         w0, w1, w2, w3 = widths
         self.conv1 = nn.Conv2d(3, w0, 7, stride=2, padding=3)
         self.norm1 = nn.InstanceNorm2d(w0)
@@ -64,12 +67,12 @@ class CNNEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         size = (x.shape[-2] // 4, x.shape[-1] // 4)
-        x = F.relu(self.norm1(self.conv1(x)))  # (B,w0,H/2,W/2)
+        x = F.relu(self.norm1(self.conv1(x)), inplace=True)  # (B,w0,H/2,W/2)
         a = self.layer1(x)  # stride 2
         b = self.layer2(a)  # stride 4
         c = self.layer3(b)  # stride 8
         d = self.layer4(c)  # stride 16
-        resize = lambda f: F.interpolate(f, size=size, mode="bilinear", align_corners=False)
+        resize = lambda f: F.interpolate(f, size=size, mode="bilinear", align_corners=self.align_corners)
         x = torch.cat([resize(a), b, resize(c), resize(d)], dim=1)  # (B,sum(widths),H/4,W/4)
-        x = F.relu(self.norm2(self.conv2(x)))
+        x = F.relu(self.norm2(self.conv2(x)), inplace=True)
         return self.conv3(x)  # (B,out_dim,H/4,W/4)

@@ -13,6 +13,8 @@ from contextlib import nullcontext
 
 import torch
 
+from c4d_core.errors import UserError
+
 log = logging.getLogger(__name__)
 
 
@@ -76,10 +78,31 @@ def training_autocast_dtype(device_type: str, bf16: bool, supported: bool) -> to
 
 
 def inference_autocast_dtype(device_type: str, supported: bool) -> torch.dtype | None:
-    """Autocast dtype of inference: bfloat16 (or float16 without it) on a GPU, None on a CPU."""
+    """Autocast dtype of the tracker's inference: bfloat16 (or float16 without it) on a GPU, None on
+    a CPU (the pointmap network: `pointmap_autocast_dtype`)."""
     if device_type != "cuda":
         return None
     return torch.bfloat16 if supported else torch.float16
+
+
+POINTMAP_PRECISIONS = ("fp32", "bf16")  # values of the config key pointmaps.precision
+
+
+def pointmap_autocast_dtype(device_type: str, precision: str, supported: bool) -> torch.dtype | None:
+    """Autocast dtype of the DUSt3R-family pointmap network (`pointmaps.precision`).
+
+    'fp32' (the default, as the official inference): None. 'bf16': bfloat16 on a GPU (pointmaps
+    move by about 1 % per pixel, docs/RESULTS.md section 5), None on a CPU. Another value, or
+    'bf16' on a GPU without bfloat16, is a `UserError`.
+    """
+    if precision not in POINTMAP_PRECISIONS:
+        raise UserError(f"pointmaps.precision must be one of {', '.join(POINTMAP_PRECISIONS)}, "
+                        f"got {precision!r}")
+    if precision == "fp32" or device_type != "cuda":
+        return None
+    if not supported:
+        raise UserError("this GPU has no bfloat16 support; use pointmaps.precision=fp32")
+    return torch.bfloat16
 
 
 def autocast(device_type: str, dtype: torch.dtype | None):

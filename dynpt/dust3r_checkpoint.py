@@ -160,6 +160,33 @@ def rope_frequency(kwargs: dict[str, Any], default: float = 100.0) -> float:
     return float(pos_embed[len("RoPE"):] or default)
 
 
+# CroCoNet's defaults, which the official code gets when args.model omits the head counts (it
+# evaluates the string, so the constructor defaults apply, whatever the width).
+CROCO_DEFAULT_HEADS = {"enc_num_heads": 12, "dec_num_heads": 16}
+
+
+def head_count(ckpt: OfficialCheckpoint, name: str, width: int) -> int:
+    """Attention heads `name` ('enc_num_heads' or 'dec_num_heads') of a network `width` wide.
+
+    The value in args.model if given; CroCo's default (12 encoder, 16 decoder heads) when the file
+    has args.model without it, as the official code builds it; width / 64 (the released ViT-L/B
+    ratio) for a bare state dict, which has no description at all. Raises `UserError` if the
+    width does not split into that many heads of a multiple of 4 channels (2-D RoPE needs it).
+    """
+    if name in ckpt.kwargs:
+        heads = int(ckpt.kwargs[name])
+    elif ckpt.constructor:
+        heads = CROCO_DEFAULT_HEADS[name]
+    else:
+        heads = max(1, width // 64)
+    if heads < 1 or width % heads or (width // heads) % 4:
+        where = "its args.model" + ("" if name in ckpt.kwargs else f" (no {name}: CroCo's default)")
+        raise UserError(f"{str(ckpt.path)!r}: width {width} does not split into {heads} attention heads "
+                        f"with a channel count divisible by 4, as {where} says; the file's description "
+                        "does not match its weights")
+    return heads
+
+
 def block_count(state_dict: dict[str, torch.Tensor], prefix: str) -> int:
     """Number of blocks `prefix{i}.` present in a state dict (max index + 1; 0 if none)."""
     indices = {int(k[len(prefix):].split(".", 1)[0]) for k in state_dict if k.startswith(prefix)}

@@ -153,7 +153,7 @@ class Tracker:
 
     @torch.inference_mode()
     def track(self, video, queries=None, grid_size: int = 20, seed: int = 0, backward: bool = True,
-              max_points: int | None = None) -> TrackResult:
+              max_points: int | None = None, support_grid: int = 0) -> TrackResult:
         """Track points through `video`: uint8 (T,H,W,3) numpy or torch, or the path of a video
         file or of a folder of frames (read at full size: `dynpt.read_video` reads a part).
 
@@ -163,8 +163,12 @@ class Tracker:
         frame keep the query position, visible False, confidence 0, moving NaN).
         max_points: track at most this many points jointly (memory grows linearly with it);
         None tracks all together (points inform each other through the transformer).
+        support_grid: also track a support_grid x support_grid grid of points from frame 0 with
+        every chunk of queries, then drop them (CoTracker3's predictor uses 6 with given queries).
         """
         video = _check_video(video)
+        if support_grid < 0 or support_grid == 1:
+            raise UserError(f"support_grid={support_grid}: give 0 (none) or a grid size of at least 2")
         T, H, W = video.shape[:3]
         if queries is None:
             first = video[0].cpu().numpy() if isinstance(video, torch.Tensor) else video[0]
@@ -183,7 +187,10 @@ class Tracker:
         frames = self._video_tensor(video, (h, w))  # (1,T,3,h,w) uint8
 
         chunk = max_points or len(queries)
-        parts = [self._predict(frames, scaled[i:i + chunk], backward) for i in range(0, len(queries), chunk)]
+        support = support_queries(support_grid, h, w)  # (G,3)
+        parts = [[x[:, :min(chunk, len(queries) - i)] for x in
+                  self._predict(frames, np.concatenate([scaled[i:i + chunk], support]), backward)]
+                 for i in range(0, len(queries), chunk)]
         coords, logits, done = (torch.cat(p, dim=1) for p in zip(*parts))  # (T,N,...)
         coords[..., 0] = (coords[..., 0] + 0.5) / sx - 0.5
         coords[..., 1] = (coords[..., 1] + 0.5) / sy - 0.5
@@ -206,7 +213,23 @@ class Tracker:
                            moving=np_(moving).astype(np.float32), queries=queries)
 
 
+def support_queries(size: int, h: int, w: int) -> np.ndarray:
+    """(size^2, 3) queries at frame 0 on CoTracker3's support grid of an h x w frame: rows and
+    columns evenly spaced between a margin of w/64 pixels from the edges, row-major."""
+    if size == 0:
+        return np.zeros((0, 3), np.float32)
+    m = w / 64
+    y, x = np.meshgrid(np.linspace(m, h - m, size), np.linspace(m, w - m, size), indexing="ij")
+    return np.stack([np.zeros(size * size), x.ravel(), y.ravel()], -1).astype(np.float32)
+
+
 def load_tracker(path: str | os.PathLike, device: str | torch.device | None = None) -> Tracker:
-    """A `Tracker` (eval mode) from a DynPT checkpoint file; no config file needed."""
+    """A `Tracker` (eval mode) from a DynPT checkpoint file (no config file needed), or from
+    `cotracker3:PATH`, a CoTracker3 release file (its windowing guessed as in
+    `dynpt.cotracker3_weights.config_from_state`; the mobility head untrained)."""
+    if str(path).startswith("cotracker3:"):
+        from dynpt.cotracker3_weights import build_from_file, parse_init
+
+        return Tracker(build_from_file(parse_init(str(path))), device)
     ckpt = load_checkpoint(path)
     return Tracker(model_from_checkpoint(ckpt, path), device)

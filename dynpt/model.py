@@ -12,6 +12,13 @@ share. Tracking runs forward in time from each query frame (online, causal acros
 `DynPTOutput.valid` is True from the query frame on. The `Tracker` in `dynpt.inference` adds
 backward tracking for queries after the first frame by running the reversed video.
 
+`windowing` picks how a video is cut into windows: "causal" (the above; the last window aligned
+with the video's end), "cotracker3_online" (CoTracker3's online model: windows at multiples of
+`window_stride`, the last one padded with the last frame) or "cotracker3_offline" (CoTracker3's
+offline model: one window over the whole clip, every track predicted in every frame, `valid` all
+True). With `time_embedding: cotracker3` and `sampling: cotracker3` as well, DynPT loaded from a
+CoTracker3 file (`dynpt.cotracker3_weights`) reproduces CoTracker3's outputs.
+
 All coordinates are (x, y) pixels of the input video, pixel centres at integers.
 """
 
@@ -34,6 +41,11 @@ from dynpt.embeddings import fourier_dim, fourier_encode
 from dynpt.update_transformer import UpdateTransformer
 
 log = logging.getLogger(__name__)
+
+# model keys added after the first checkpoints were written: their values there (old configs lack them)
+COMPAT_DEFAULTS = {"time_embedding": "hidden", "time_emb_len": 16, "sampling": "centers",
+                   "windowing": "causal", "init_from": ""}
+WINDOWINGS = ("causal", "cotracker3_online", "cotracker3_offline")
 
 
 @dataclass
@@ -59,8 +71,15 @@ class DynPT(nn.Module):
         super().__init__()
         self.config = config
         c = config
+        if c["windowing"] not in WINDOWINGS:
+            raise UserError(f"model.windowing={c['windowing']!r}: choose one of {', '.join(WINDOWINGS)}")
+        if c["sampling"] not in ("centers", "cotracker3"):
+            raise UserError(f"model.sampling={c['sampling']!r}: choose centers or cotracker3")
+        if c["time_embedding"] not in ("hidden", "cotracker3"):
+            raise UserError(f"model.time_embedding={c['time_embedding']!r}: choose hidden or cotracker3")
+        align = c["sampling"] == "cotracker3"
         self.stride = CNNEncoder.stride
-        self.cnn = CNNEncoder(c["cnn_widths"], c["feature_dim"])
+        self.cnn = CNNEncoder(c["cnn_widths"], c["feature_dim"], align_corners=align)
         self.encoder_3d = encoder_3d
         self.encoder_layers = list(c["encoder_3d"]["layers"])
         if encoder_3d is not None:
@@ -72,12 +91,12 @@ class DynPT(nn.Module):
             self.fuse = nn.Conv2d(2 * c["feature_dim"], c["feature_dim"], 1)
             self.patch_size = enc["patch_size"]
         self.corr = CorrelationEncoder(
-            c["corr_levels"], c["corr_radius"], c["corr_hidden_dim"], c["corr_out_dim"]
+            c["corr_levels"], c["corr_radius"], c["corr_hidden_dim"], c["corr_out_dim"], align_corners=align
         )
         input_dim = 3 + self.corr.out_dim + fourier_dim(4, c["fourier_freqs"])
         self.transformer = UpdateTransformer(
             input_dim, c["hidden_dim"], c["num_heads"], c["depth"], c["mlp_ratio"],
-            c["num_virtual_tracks"],
+            c["num_virtual_tracks"], c["time_embedding"], c["time_emb_len"],
         )
         self.register_buffer(
             "displacement_scale", torch.tensor(c["displacement_scale"], dtype=torch.float32),
@@ -122,13 +141,20 @@ class DynPT(nn.Module):
             grid = feats.transpose(1, 2).unflatten(-1, (gh, gw))  # (F,C,H/16,W/16)
             grid = F.interpolate(grid, size=fmap.shape[-2:], mode="bilinear", align_corners=False)
             fmap = self.fuse(torch.cat([fmap, grid], dim=1))  # (F,C,h,w)
-        return fmap / fmap.norm(dim=1, keepdim=True).clamp_min(1e-6)
+        return fmap * fmap.square().sum(1, keepdim=True).clamp_min(1e-12).rsqrt()  # / max(norm, 1e-6)
 
     # -- tracking -----------------------------------------------------------------------------
 
+    def window_len(self, T: int) -> int:
+        """Frames per window for a T-frame video (the whole clip with `cotracker3_offline`)."""
+        return T if self.config["windowing"] == "cotracker3_offline" else self.config["window_len"]
+
     def window_starts(self, T: int) -> list[int]:
-        """First frames of the sliding windows for a T-frame video (T < window: one window)."""
-        S, step = self.config["window_len"], self.config["window_stride"]
+        """First frames of the sliding windows for a T-frame video (T < window: one window).
+        Frames past the video's end (padding) repeat its last frame."""
+        S, step = self.window_len(T), self.config["window_stride"]
+        if self.config["windowing"] == "cotracker3_online":  # CoTracker3's count, at least one
+            return [k * step for k in range(max(1, (T - S + step - 1) // step + 1))]
         Tp = max(T, S)  # a video shorter than a window is padded with its last frame
         starts = list(range(0, Tp - S + 1, step))
         if starts[-1] + S < Tp:
@@ -186,13 +212,13 @@ class DynPT(nn.Module):
         iters: refinement iterations per window; default `train_iters` in training mode,
             `eval_iters` in eval mode.
         Videos longer than `window_len` run in sliding windows; shorter ones are padded with
-        their last frame to one window.
+        their last frame to one window (`windowing`: see the module doc).
         """
         c = self.config
         B, T, _, H, W = video.shape
         N = queries.shape[1]
         iters = iters or (c["train_iters"] if self.training else c["eval_iters"])
-        S = c["window_len"]
+        S = self.window_len(T)
         t_q = queries[..., 0].round().long()  # (B,N)
         xy_q = queries[..., 1:].float()  # (B,N,2)
         if T < 2 or N < 1 or t_q.min() < 0 or t_q.max() >= T:
@@ -249,6 +275,8 @@ class DynPT(nn.Module):
             for i in range(iters)
         ]
         valid = torch.arange(T, device=video.device)[None, :, None] >= t_q[:, None, :]  # (B,T,N)
+        if c["windowing"] == "cotracker3_offline":  # one pass over the clip predicts every frame
+            valid = torch.ones_like(valid)
         return DynPTOutput(
             coords=[xy for xy, _ in per_iter],
             vis_logits=[lg[..., 0] for _, lg in per_iter],
@@ -259,10 +287,13 @@ class DynPT(nn.Module):
 
 
 def plain_config(model_cfg: Mapping) -> dict:
-    """A mutable plain-dict copy of a `model:` config section (dict or DictConfig)."""
+    """A mutable plain-dict copy of a `model:` config section (dict or DictConfig), the keys of
+    `COMPAT_DEFAULTS` filled in where missing (configs written before they existed)."""
     if isinstance(model_cfg, DictConfig):
-        return OmegaConf.to_container(model_cfg, resolve=True)
-    return OmegaConf.to_container(OmegaConf.create(dict(model_cfg)), resolve=True)
+        cfg = OmegaConf.to_container(model_cfg, resolve=True)
+    else:
+        cfg = OmegaConf.to_container(OmegaConf.create(dict(model_cfg)), resolve=True)
+    return {**COMPAT_DEFAULTS, **cfg}
 
 
 def build_model(model_cfg: Mapping, *, weights_from_state_dict: bool = False) -> DynPT:

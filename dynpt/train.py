@@ -189,6 +189,38 @@ def alias_last(path: Path) -> Path:
     return last
 
 
+# --- parameter groups ---------------------------------------------------------------------------
+
+# parts of DynPT by parameter-name prefix, for `train.lr_scale` (the mobility head before the
+# transformer: the first matching prefix wins)
+PARTS = {"mobility": ("transformer.mobility_head.",), "transformer": ("transformer.",),
+         "cnn": ("cnn.",), "correlation": ("corr.",), "fusion": ("vit_proj.", "fuse.")}
+
+
+def param_groups(model: torch.nn.Module, lr: float, lr_scale) -> list[dict]:
+    """AdamW groups, one per part of `PARTS` with trainable parameters: learning rate
+    `lr * lr_scale[part]`; a scale of 0 freezes the part (requires_grad False, not optimised).
+    The frozen 3D encoder is never trained."""
+    unknown = sorted(set(lr_scale) - set(PARTS))
+    if unknown:
+        raise UserError(f"train.lr_scale: unknown part(s) {unknown}; parts are {', '.join(PARTS)}")
+    groups: dict[str, list] = {part: [] for part in PARTS}
+    for name, p in model.named_parameters():
+        if not p.requires_grad:
+            continue
+        part = next((k for k, prefixes in PARTS.items() if name.startswith(prefixes)), None)
+        if part is None:
+            raise UserError(f"parameter {name} belongs to no part of train.lr_scale")
+        if lr_scale[part] == 0:
+            p.requires_grad_(False)
+        else:
+            groups[part].append(p)
+    out = [{"name": k, "params": v, "lr": lr * lr_scale[k]} for k, v in groups.items() if v]
+    if not out:
+        raise UserError("train.lr_scale freezes every part; give at least one part a scale > 0")
+    return out
+
+
 # --- the loop -----------------------------------------------------------------------------------
 
 
@@ -206,15 +238,20 @@ class Trainer:
         np.random.seed(cfg.seed + self.rank)
         torch.manual_seed(cfg.seed + self.rank)
 
-        self.model = build_model(cfg.model).to(self.device)
+        self.model = build_model(cfg.model)
+        if cfg.model.init_from and not resume:  # the weights of the run's start (resume: from its checkpoint)
+            from dynpt.cotracker3_weights import load_into, parse_init
+
+            load_into(self.model, parse_init(cfg.model.init_from))
+        self.model.to(self.device)
         self.amp_dtype = training_autocast_dtype(self.device.type, tc.bf16,
                                                  bf16_supported(self.device))
-        params = [p for p in self.model.parameters() if p.requires_grad]
-        self.optimizer = torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay,
+        groups = param_groups(self.model, tc.lr, tc.lr_scale)
+        self.optimizer = torch.optim.AdamW(groups, lr=tc.lr, weight_decay=tc.weight_decay,
                                            eps=tc.adam_eps)
         self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
             # warm-up of at least 2 steps: OneCycleLR divides by zero on a shorter phase
-            self.optimizer, max_lr=tc.lr, total_steps=tc.steps,
+            self.optimizer, max_lr=[g["lr"] for g in groups], total_steps=tc.steps,
             pct_start=max(tc.pct_start, 2.0 / tc.steps),
             anneal_strategy="cos", cycle_momentum=False, div_factor=tc.div_factor,
             final_div_factor=tc.final_div_factor)

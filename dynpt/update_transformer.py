@@ -5,7 +5,9 @@ logits. Design of CoTracker3's EfficientUpdateFormer: each layer is one time sel
 over every track (virtual ones included), then virtual<-point cross-attention, virtual
 self-attention and point<-virtual cross-attention within each frame. A 1-D sin-cos embedding of
 the frame's index in the window is added after the input projection (computed, not stored, so the
-window length is not baked into the weights).
+window length is not baked into the weights), or, with `time_embedding="cotracker3"`, a stored
+input-width table of `time_emb_len` rows is added before it, linearly resized to the window
+length as CoTracker3 does (its released weights expect that).
 """
 
 from __future__ import annotations
@@ -63,9 +65,13 @@ class UpdateTransformer(nn.Module):
 
     def __init__(
         self, input_dim: int, hidden_dim: int, num_heads: int, depth: int,
-        mlp_ratio: float, num_virtual_tracks: int,
+        mlp_ratio: float, num_virtual_tracks: int, time_embedding: str = "hidden", time_emb_len: int = 16,
     ):
         super().__init__()
+        self.time_embedding = time_embedding
+        if time_embedding == "cotracker3":  # (1,L,input_dim); replaced by CoTracker3's when loading its weights
+            emb = sincos_time_embedding(time_emb_len, input_dim - input_dim % 2)
+            self.register_buffer("time_emb", F.pad(emb, (0, input_dim % 2))[None])
         self.input_transform = nn.Linear(input_dim, hidden_dim)
         self.virtual_tracks = nn.Parameter(torch.randn(1, num_virtual_tracks, 1, hidden_dim))
         block = lambda cross=False: AttnBlock(hidden_dim, num_heads, mlp_ratio, cross)
@@ -88,8 +94,11 @@ class UpdateTransformer(nn.Module):
 
     def forward(self, tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         B, N, T, _ = tokens.shape
-        x = self.input_transform(tokens)  # (B,N,T,D)
-        x = x + sincos_time_embedding(T, x.shape[-1], x.device).to(x.dtype)  # frame index in window
+        if self.time_embedding == "cotracker3":
+            x = self.input_transform(tokens + self._resized_time_emb(T).to(tokens.dtype))  # (B,N,T,D)
+        else:
+            x = self.input_transform(tokens)  # (B,N,T,D)
+            x = x + sincos_time_embedding(T, x.shape[-1], x.device).to(x.dtype)  # frame index in window
         V = self.virtual_tracks.shape[1]
         x = torch.cat([x, self.virtual_tracks.expand(B, V, T, -1)], dim=1)  # (B,N+V,T,D)
         for time_blk, v_from_p, v_blk, p_from_v in zip(
@@ -105,3 +114,10 @@ class UpdateTransformer(nn.Module):
         x = x[:, :N]  # drop virtual tracks
         logits = torch.cat([self.vis_conf_head(x), self.mobility_head(x)], dim=-1)  # (B,N,T,3)
         return self.flow_head(x), logits
+
+    def _resized_time_emb(self, T: int) -> torch.Tensor:
+        """The stored table linearly resized to T rows (align_corners=False): (T, input_dim)."""
+        emb = self.time_emb
+        if emb.shape[1] != T:
+            emb = F.interpolate(emb.float().transpose(1, 2), size=T, mode="linear").transpose(1, 2)
+        return emb[0]

@@ -21,7 +21,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from c4d_core.errors import UserError
-from dynpt.dust3r_checkpoint import OfficialCheckpoint, block_count, read_checkpoint, rope_frequency
+from dynpt.dust3r_checkpoint import (OfficialCheckpoint, block_count, head_count, read_checkpoint,
+                                     rope_frequency)
 
 ENCODER_PREFIXES = ("patch_embed.", "enc_blocks.", "enc_norm.")
 LAYER_NORM_EPS = 1e-6
@@ -166,18 +167,17 @@ class Dust3rEncoder(nn.Module):
         return self.enc_norm(x), pos, layers
 
 
-def encoder_kwargs(state_dict: dict[str, torch.Tensor], args: dict[str, Any]) -> dict[str, Any]:
-    """Dust3rEncoder constructor arguments: sizes from the weights, heads and RoPE from `args`."""
+def encoder_kwargs(ckpt: OfficialCheckpoint) -> dict[str, Any]:
+    """Dust3rEncoder constructor arguments: sizes from the weights, heads and RoPE from args.model
+    (heads: `dynpt.dust3r_checkpoint.head_count`)."""
+    state_dict = ckpt.state_dict
     proj = state_dict["patch_embed.proj.weight"]  # (D, 3, p, p)
     dim = proj.shape[0]
     depth = block_count(state_dict, "enc_blocks.")
     hidden = state_dict["enc_blocks.0.mlp.fc1.weight"].shape[0] if depth else 4 * dim
-    num_heads = int(args.get("enc_num_heads", max(1, dim // 64)))
-    if dim % num_heads or (dim // num_heads) % 4:
-        raise UserError(f"encoder width {dim} does not split into {num_heads} heads with a channel "
-                        "count divisible by 4; the checkpoint's args do not match its weights")
+    num_heads = head_count(ckpt, "enc_num_heads", dim)
     return dict(patch_size=proj.shape[-1], embed_dim=dim, depth=depth, num_heads=num_heads,
-                mlp_ratio=hidden / dim, rope_freq=rope_frequency(args))
+                mlp_ratio=hidden / dim, rope_freq=rope_frequency(ckpt.kwargs))
 
 
 def encoder_from_checkpoint(ckpt: OfficialCheckpoint) -> Dust3rEncoder:
@@ -186,7 +186,7 @@ def encoder_from_checkpoint(ckpt: OfficialCheckpoint) -> Dust3rEncoder:
     if "patch_embed.proj.weight" not in state:
         raise UserError(f"{str(ckpt.path)!r} has no DUSt3R encoder weights (patch_embed.proj.weight); "
                         "pass a DUSt3R, MASt3R or MonST3R checkpoint")
-    encoder = Dust3rEncoder(**encoder_kwargs(state, ckpt.kwargs))
+    encoder = Dust3rEncoder(**encoder_kwargs(ckpt))
     missing, unexpected = encoder.load_state_dict(state, strict=False)
     if missing or unexpected:
         raise UserError(f"encoder weights in {str(ckpt.path)!r} do not fit a DUSt3R ViT: missing "
@@ -198,7 +198,8 @@ def load_dust3r_encoder(path: str | Path, map_location: Any = "cpu") -> Dust3rEn
     """The ViT encoder of an official DUSt3R/MASt3R/MonST3R checkpoint file, in eval mode.
 
     Sizes (width, depth, patch, MLP ratio) are read from the weights; the head count and RoPE base
-    from the file's `args.model` string (parsed, never executed; defaults width/64 and 100).
+    from the file's `args.model` string (parsed, never executed; a string without the head count
+    means CroCo's default of 12, a bare state dict width/64; RoPE base 100 by default).
     See `dynpt.dust3r_checkpoint` for how the file is unpickled.
     """
     return encoder_from_checkpoint(read_checkpoint(path, map_location))

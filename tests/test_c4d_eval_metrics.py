@@ -137,3 +137,70 @@ def test_mask_iou_by_hand():
     assert result["iou_frame_mean"] == pytest.approx((1 / 4 + 1.0) / 2)  # empty frame agrees: 1
     assert mask_iou(gt, gt)["iou"] == 1.0
     assert mask_iou(~gt, gt)["iou"] == 0.0
+
+
+def evo_pose_metrics(pred, gt):
+    """ATE, RPE trans and RPE rot as evo computes them: Sim(3) alignment, RMSE, delta 1 frame."""
+    from evo.core import metrics, trajectory
+
+    stamps = np.arange(len(gt), dtype=float)
+    ref = trajectory.PoseTrajectory3D(poses_se3=list(gt.astype(np.float64)), timestamps=stamps)
+    est = trajectory.PoseTrajectory3D(poses_se3=list(pred.astype(np.float64)), timestamps=stamps)
+    est.align(ref, correct_scale=True)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    out = {"ate": ape.get_statistic(metrics.StatisticsType.rmse)}
+    for name, relation in (("rpe_trans", metrics.PoseRelation.translation_part),
+                           ("rpe_rot", metrics.PoseRelation.rotation_angle_deg)):
+        rpe = metrics.RPE(relation, delta=1, delta_unit=metrics.Unit.frames, all_pairs=False)
+        rpe.process_data((ref, est))
+        out[name] = rpe.get_statistic(metrics.StatisticsType.rmse)
+    return out
+
+
+def noisy_copy(rng, gt, trans_sigma, rot_sigma):
+    """gt (T,4,4) with centres moved by N(0, trans_sigma) and rotations turned by ~rot_sigma rad."""
+    pred = gt.copy()
+    pred[:, :3, 3] += rng.normal(0, trans_sigma, (len(gt), 3))
+    turns = np.stack([quat_to_matrix(np.r_[1.0, rng.normal(0, rot_sigma / 2, 3)]) for _ in gt])
+    pred[:, :3, :3] = turns @ gt[:, :3, :3]
+    return pred
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rot_sigma", [1e-4, 1e-2, 0.3])
+def test_pose_metrics_equal_evo_on_random_trajectories(dtype, rot_sigma):
+    rng = np.random.default_rng(int(rot_sigma * 1e4))
+    gt = random_trajectory(rng, 40)
+    gt[:, :3, 3] = np.cumsum(gt[:, :3, 3] * 0.1, 0)  # a path, not a cloud
+    pred = noisy_copy(rng, gt, 0.01, rot_sigma)
+    pred[:, :3, 3] = 3.0 * pred[:, :3, 3] @ random_rotation(rng).T + [1.0, 2.0, 3.0]  # another Sim(3) frame
+    ours, evo = pose_metrics(pred.astype(dtype), gt.astype(dtype)), evo_pose_metrics(pred.astype(dtype), gt.astype(dtype))
+    for name in ("ate", "rpe_trans", "rpe_rot"):
+        assert ours[name] == pytest.approx(evo[name], rel=1e-6), name
+
+
+def test_float32_ground_truth_against_itself_scores_zero_rotation_error():
+    # near the identity arccos((tr R - 1) / 2) of a float32 rotation has a ~0.01 degree floor
+    gt = random_trajectory(np.random.default_rng(5), 30).astype(np.float32)
+    assert pose_metrics(gt, gt)["rpe_rot"] < 1e-6
+    assert evo_pose_metrics(gt, gt)["rpe_rot"] < 1e-6
+
+
+def test_pose_metrics_equal_evo_on_an_optimiser_trajectory():
+    from c4d_core.config import load_config
+    from c4d_pipeline.optimize import optimise
+    from c4d_pipeline.pointmaps import GroundTruthPointmaps
+    from c4d_pipeline.scene_graph import strided_window_pairs
+    from c4d_pipeline.synthetic import make_box_scene
+
+    scene = make_box_scene(num_frames=8, height=24, width=32, num_tracks=0, seed=2)
+    edges = strided_window_pairs(8, window=3, stride=2)
+    pw = GroundTruthPointmaps(scene, static_bias=False).pointmaps(scene.rgb, edges)
+    cfg = load_config("c4d", "tiny", overrides=["graph.window=3", "weights.cma=0", "weights.pts=0"])
+    res = optimise(pw, 8, cfg)
+    assert res.cam_to_world.dtype == np.float32
+    ours, evo = pose_metrics(res.cam_to_world, scene.cam_to_world), evo_pose_metrics(res.cam_to_world, scene.cam_to_world)
+    assert ours["rpe_rot"] > 1e-4  # a real error, above any rounding floor
+    for name in ("ate", "rpe_trans", "rpe_rot"):
+        assert ours[name] == pytest.approx(evo[name], rel=1e-6), name

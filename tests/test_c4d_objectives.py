@@ -18,48 +18,106 @@ def rot_z(theta: float) -> torch.Tensor:
     return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
 
+def channels_first(points):
+    """(n,P,3) -> (n,3,P), the layout of the GA and CMA kernels."""
+    return points.transpose(1, 2)
+
+
 def test_global_alignment_zero_at_truth_and_hand_value_off_it():
     g = torch.Generator().manual_seed(0)
     world = torch.randn(2, 5, 3, generator=g, dtype=torch.float64)  # (T,P,3)
     rot, scale, trans = rot_z(0.3)[None], torch.tensor([2.0], dtype=torch.float64), torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64)
     inv = lambda x: ((x - trans) @ rot[0]) / scale  # world -> pair frame
-    pts_i, pts_j = inv(world[0])[None], inv(world[1])[None]
-    w = torch.full((1, 5), 0.5, dtype=torch.float64)
-    ei, ej = torch.tensor([0]), torch.tensor([1])
-    assert obj.global_alignment_sum(world, ei, ej, pts_i, pts_j, w, w, scale, rot, trans) < 1e-12
+    pts = torch.stack([inv(world[0]), inv(world[1])])  # views i and j of edge (0, 1)
+    w = torch.full((2, 5), 0.5, dtype=torch.float64)
+    frames, mat = torch.tensor([0, 1]), (scale[:, None, None] * rot).expand(2, 3, 3)
+    ga = lambda x: obj.global_alignment_sum(channels_first(x), frames, channels_first(pts), w, mat, trans.expand(2, 3))  # noqa: E731
+    assert ga(world) < 1e-12
     shifted = world.clone()
     shifted[1] += torch.tensor([0.0, 3.0, 4.0], dtype=torch.float64)  # 5 units off, 5 pixels
-    value = obj.global_alignment_sum(shifted, ei, ej, pts_i, pts_j, w, w, scale, rot, trans)
-    assert value.item() == pytest.approx(0.5 * 5 * 5.0)
+    assert ga(shifted).item() == pytest.approx(0.5 * 5 * 5.0)
+
+
+def reference_ga(world, frames, pts, w, mat, trans):
+    """GA written the straightforward way (autograd), channels-last: world (T,P,3), pts (n,P,3)."""
+    return (w * (world[frames] - (pts @ mat.transpose(1, 2) + trans[:, None])).norm(dim=-1)).sum()
+
+
+def reference_cma(cam, frames, mat, offset, target, static, max_px, px_scale):
+    """CMA written the straightforward way (autograd), channels-last: cam (T,P,3), target (e,P,2)."""
+    proj = cam[frames] @ mat.transpose(1, 2) + offset[:, None]
+    z = proj[..., 2]
+    err = px_scale * (proj[..., :2] / z.clamp_min(1e-6)[..., None] - target).abs()
+    keep = static[..., None] & (z > 1e-6)[..., None] & (err < max_px).detach()
+    return (err * keep).sum()
+
+
+def test_hand_written_gradients_equal_autograd_of_the_plain_formulas():
+    g = torch.Generator().manual_seed(1)
+    t, n, p = 4, 7, 60
+    world = torch.randn(t, p, 3, generator=g, dtype=torch.float64)
+    mat, trans = torch.randn(n, 3, 3, generator=g, dtype=torch.float64), torch.randn(n, 3, generator=g, dtype=torch.float64)
+    frames = torch.randint(0, t, (n,), generator=g)
+    pts, w = torch.randn(n, p, 3, generator=g, dtype=torch.float64), torch.rand(n, p, generator=g, dtype=torch.float64)
+    cam = torch.randn(t, p, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
+    cam[0, :5, 2] = -1.0  # behind the camera: ignored
+    proj = torch.eye(3, dtype=torch.float64) * 40 + torch.randn(n, 3, 3, generator=g, dtype=torch.float64)
+    proj[:, 2] = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    offset = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    target = torch.randn(n, p, 2, generator=g, dtype=torch.float64) * 10
+    static = torch.rand(n, p, generator=g) > 0.2
+    cases = [
+        (lambda a, b, c: obj.global_alignment_sum(channels_first(a), frames, channels_first(pts), w, b, c),
+         lambda a, b, c: reference_ga(a, frames, pts, w, b, c), (world, mat, trans)),
+        (lambda a, b, c: obj.camera_motion_sum(channels_first(a), frames, b, c, channels_first(target), static, 30.0, 2.0),
+         lambda a, b, c: reference_cma(a, frames, b, c, target, static, 30.0, 2.0), (cam, proj, offset)),
+    ]
+    for fused, plain, inputs in cases:
+        values, grads = [], []
+        for fn in (fused, plain):
+            leaves = [x.clone().requires_grad_() for x in inputs]
+            value = fn(*leaves)
+            value.backward()
+            values.append(value.item())
+            grads.append([leaf.grad for leaf in leaves])
+        assert values[0] == pytest.approx(values[1], rel=1e-12)
+        for a, b in zip(*grads):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
 
 
 def test_camera_motion_alignment_zero_for_ego_flow_and_l1_otherwise():
     h, w = 4, 5
     focal = torch.tensor([10.0, 10.0], dtype=torch.float64)
     principal = torch.tensor([2.0, 1.5], dtype=torch.float64)
-    cam = (pixel_rays(h, w, focal, principal) * 3.0).reshape(2, -1, 3)  # depth 3
+    cam = channels_first((pixel_rays(h, w, focal, principal) * 3.0).reshape(2, -1, 3))  # depth 3
     poses = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
     poses[1, 0, 3] = 0.3  # camera 1 moved 0.3 to the right: points move 10*0.3/3 = 1 px left
     k = torch.zeros(2, 3, 3, dtype=torch.float64)
     k[:, 0, 0] = k[:, 1, 1] = 10.0
     k[:, 0, 2], k[:, 1, 2], k[:, 2, 2] = 2.0, 1.5, 1.0
     v, u = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-    pixels = torch.stack([u, v], -1).reshape(-1, 2).double()
+    pixels = torch.stack([u, v]).reshape(1, 2, -1).double()  # (1,2,P)
     ei, ej = torch.tensor([0]), torch.tensor([1])
-    flow = torch.zeros(1, h * w, 2, dtype=torch.float64)
-    flow[..., 0] = -1.0
+    mat, offset = obj.ego_projection(poses[:, :3, :3], poses[:, :3, 3], k, ei, ej)
+    flow = torch.zeros(1, 2, h * w, dtype=torch.float64)
+    flow[:, 0] = -1.0
     static = torch.ones(1, h * w, dtype=torch.bool)
-    assert obj.camera_motion_sum(cam, poses, k, ei, ej, flow, static, pixels, 50.0) < 1e-9
-    flow[..., 1] += 0.5  # every static pixel off by 0.5 px in y
+    cma = lambda max_px, px_scale=1.0: obj.camera_motion_sum(cam, ei, mat, offset, pixels + flow, static, max_px, px_scale)  # noqa: E731
+    assert cma(50.0) < 1e-9
+    flow[:, 1] += 0.5  # every static pixel off by 0.5 px in y
     static[0, :4] = False
-    value = obj.camera_motion_sum(cam, poses, k, ei, ej, flow, static, pixels, 50.0)
-    assert value.item() == pytest.approx(0.5 * (h * w - 4))
+    assert cma(50.0).item() == pytest.approx(0.5 * (h * w - 4))
     # errors beyond max_px are ignored
-    assert obj.camera_motion_sum(cam, poses, k, ei, ej, flow, static, pixels, 0.4).item() == pytest.approx(0.0)
+    assert cma(0.4).item() == pytest.approx(0.0)
     # in reference pixels: this 5-px-wide image seen as a 20-px one, errors (and max_px) 4x larger
-    value = obj.camera_motion_sum(cam, poses, k, ei, ej, flow, static, pixels, 50.0, px_scale=4.0)
-    assert value.item() == pytest.approx(4 * 0.5 * (h * w - 4))
-    assert obj.camera_motion_sum(cam, poses, k, ei, ej, flow, static, pixels, 1.9, px_scale=4.0).item() == pytest.approx(0.0, abs=1e-9)
+    assert cma(50.0, 4.0).item() == pytest.approx(4 * 0.5 * (h * w - 4))
+    assert cma(1.9, 4.0).item() == pytest.approx(0.0, abs=1e-9)
+
+
+def test_objectives_registry_names_every_term_once():
+    names = [(t.name, t.stage) for t in obj.OBJECTIVES]
+    assert names == [("ga", 1), ("cma", 1), ("cts", 1), ("pts", 2)]
+    assert {t.name for t in obj.OBJECTIVES if t.per_edge} == {"ga", "cma"}
 
 
 def test_camera_smoothness_hand_values():

@@ -52,6 +52,17 @@ def test_noise_lowers_confidence_and_is_deterministic(dynamic_scene):
     assert 0.02 < rel.mean() < 0.15
 
 
+def test_every_scene_gets_its_own_noise(dynamic_scene):
+    # two scenes of one data set, same seed and pairs: different noise fields, confidences, scales
+    other = make_box_scene(num_frames=6, height=24, width=32, num_tracks=16, seed=4)
+    edges = np.array([[0, 1], [1, 0]])
+    a, b = (GroundTruthPointmaps(sc, static_bias=False, seed=4).pointmaps(sc.rgb, edges) for sc in (dynamic_scene, other))
+    assert np.abs(a.conf_i - b.conf_i).max() > 1.0
+    reloaded = make_box_scene(num_frames=6, height=24, width=32, num_tracks=16, seed=3)  # same scene again
+    again = GroundTruthPointmaps(reloaded, static_bias=False, seed=4).pointmaps(reloaded.rgb, edges)
+    np.testing.assert_array_equal(a.conf_i, again.conf_i)
+
+
 def test_static_world_bias_vanishes_in_a_static_scene(static_scene):
     sc = static_scene
     biased = GroundTruthPointmaps(sc, static_bias=True)

@@ -44,6 +44,11 @@ def test_autocast_dtypes():
     assert dev.inference_autocast_dtype("cuda", True) is torch.bfloat16
     assert dev.inference_autocast_dtype("cuda", False) is torch.float16
     assert dev.inference_autocast_dtype("cpu", True) is None
+    assert dev.pointmap_autocast_dtype("cuda", "fp32", True) is None  # the official inference's fp32
+    assert dev.pointmap_autocast_dtype("cuda", "bf16", True) is torch.bfloat16
+    assert dev.pointmap_autocast_dtype("cpu", "bf16", True) is None
+    with pytest.raises(UserError, match="no bfloat16"):
+        dev.pointmap_autocast_dtype("cuda", "bf16", False)
 
 
 def test_hardware_queries_call_the_cuda_api(monkeypatch):

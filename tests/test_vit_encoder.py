@@ -123,6 +123,22 @@ def test_bare_state_dict_with_module_prefix_loads(tmp_path):
     assert loaded.patch_embed.proj.weight.shape == (32, 3, 4, 4)
 
 
+def test_head_count_from_string_croco_default_or_width(tmp_path):
+    """Given heads are used; a model string without them means CroCo's 12 (as the official code
+    builds it); a bare state dict has no description, so width / 64."""
+    torch.manual_seed(0)
+    wide = Dust3rEncoder(patch_size=4, embed_dim=48, depth=1, num_heads=12).eval()
+    for args, heads in (("Net(pos_embed='RoPE100', enc_num_heads=3)", 3), ("Net(pos_embed='RoPE100')", 12)):
+        path = tmp_path / "enc.pth"
+        torch.save({"model": wide.state_dict(), "args": argparse.Namespace(model=args)}, path)
+        assert load_dust3r_encoder(path).enc_blocks[0].attn.num_heads == heads
+    torch.save(wide.state_dict(), path)
+    assert load_dust3r_encoder(path).enc_blocks[0].attn.num_heads == 1
+    torch.save({"model": tiny_encoder().state_dict(), "args": argparse.Namespace(model="Net()")}, path)
+    with pytest.raises(UserError, match="does not split into 12 attention heads"):
+        load_dust3r_encoder(path)  # 32 channels, CroCo's 12 heads
+
+
 def test_constructor_string_is_parsed_not_executed():
     name, kwargs = parse_constructor(OFFICIAL_ARGS.format(D=1024, L=24, H=16))
     assert name == "AsymmetricCroCo3DStereo"

@@ -1,0 +1,211 @@
+"""DynPT from CoTracker3's weights: the mapping table against golden outputs of CoTracker3's own code.
+
+tests/fixtures/cotracker3_golden.pt holds, for a reduced-size CoTracker3 offline and online model
+built from facebookresearch/co-tracker's classes with random weights (heads scaled up so tracks
+move), the state dicts, an 18-frame 48x64 video, 12 queries at frames 0..17 and CoTracker3's
+tracks, visibility and confidence (3 iterations; online: windows of 8 moved by 4, the last one
+padded). Made by a scratch script outside the repository.
+"""
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
+from dynpt import cotracker3_weights as cw
+from dynpt.model import build_model, plain_config
+
+GOLDEN = Path(__file__).parent / "fixtures" / "cotracker3_golden.pt"
+
+
+@pytest.fixture(scope="module")
+def golden():
+    return torch.load(GOLDEN, weights_only=True)
+
+
+def _base() -> dict:
+    return plain_config(load_config("dynpt", "model/cotracker3-offline").model)
+
+
+def _dynpt(state, windowing, tmp_path):
+    path = tmp_path / "ct3.pth"
+    torch.save({"model": state}, path)  # as written by CoTracker3's training (under `model`)
+    model = build_model(cw.config_from_state(state, _base(), windowing))
+    fresh = cw.load_into(model, path)
+    return model.eval(), fresh
+
+
+@pytest.mark.parametrize("kind", ["offline", "online"])
+def test_outputs_equal_cotracker3(golden, kind, tmp_path):
+    g = golden[kind]
+    model, fresh = _dynpt(g["state"], f"cotracker3_{kind}", tmp_path)
+    assert fresh == ["transformer.mobility_head.weight", "transformer.mobility_head.bias"]
+    q = golden["queries"]
+    with torch.no_grad():
+        out = model(golden["video"], q, iters=3)
+    valid = out.valid[0]  # offline: every frame; online: from the query frame on
+    assert valid.all() == (kind == "offline")
+    err = (out.coords[-1][0] - g["tracks"]).norm(dim=-1)[valid]
+    motion = (g["tracks"] - q[0, None, :, 1:]).norm(dim=-1)[valid]
+    assert motion.mean() > 2.0  # the tracks move: a wrong mapping shows
+    assert err.max() < 1e-3, err.max()
+    vis, conf = torch.sigmoid(out.vis_logits[-1][0]), torch.sigmoid(out.conf_logits[-1][0])
+    assert (vis - g["vis"]).abs()[valid].max() < 1e-4
+    assert (conf - g["conf"]).abs()[valid].max() < 1e-4
+
+
+def test_plain_rename_of_the_correlation_mlp_is_wrong(golden, tmp_path):
+    """Without the column reorder the outputs differ: the golden data catches a plain rename."""
+    g = golden["offline"]
+    state = dict(g["state"])
+    w = state["corr_mlp.fc1.weight"]
+    state["corr_mlp.fc1.weight"] = cw._corr_columns(w, 1)  # undone by the mapping -> plain rename
+    model, _ = _dynpt(state, "cotracker3_offline", tmp_path)
+    with torch.no_grad():
+        out = model(golden["video"], golden["queries"], iters=3)
+    assert (out.coords[-1][0] - g["tracks"]).norm(dim=-1).max() > 0.05
+
+
+def test_mapping_table_covers_the_released_layout():
+    """Every tensor name of the released layout maps, and DynPT's fresh tensors are the mobility head."""
+    base = _base()
+    model = build_model(base)
+    target = model.state_dict()
+    names = [k for k in target if k != "transformer.mobility_head.weight" and k != "transformer.mobility_head.bias"]
+    released = ["time_emb", "fnet.conv1.weight", "corr_mlp.fc1.weight", "updateformer.virual_tracks",
+                "updateformer.space_virtual2point_blocks.2.cross_attn.to_kv.bias",
+                "updateformer.space_point2virtual_blocks.0.norm_context.weight",
+                "updateformer.time_blocks.1.mlp.fc2.weight", "updateformer.vis_conf_head.bias"]
+    assert all(cw.dynpt_key(k) in names for k in released)
+    assert cw.dynpt_key("updateformer.space_virtual_blocks.0.attn.to_q.weight") == \
+        "transformer.virtual_blocks.0.attn.to_q.weight"
+    assert cw.dynpt_key("fnet.layer2.0.downsample.0.weight") == "cnn.layer2.0.downsample.0.weight"
+    assert cw.dynpt_key("not_cotracker.weight") is None
+
+
+def test_token_columns():
+    """Mobility column inserted at zero; forward-motion raw and sine columns negated (22 with 10 freqs)."""
+    x = torch.arange(1, 1111, dtype=torch.float32)[None]  # CoTracker3's 1110 token inputs
+    y = cw._token_columns(x, 2 + 1024, 10)[0]
+    assert y.shape == (1111,) and y[2] == 0 and torch.equal(y[:2], x[0, :2])
+    negated = (y[3:] == -x[0, 2:]).nonzero().flatten() + 2
+    assert len(negated) == 22 and negated[:2].tolist() == [1026, 1027]
+
+
+def test_single_head_file_is_split(golden, tmp_path):
+    """A file with one 4-row flow head (linear_layer_for_vis_conf=False) maps onto both heads."""
+    state = dict(golden["online"]["state"])
+    state["updateformer.flow_head.weight"] = torch.cat(
+        [state["updateformer.flow_head.weight"], state.pop("updateformer.vis_conf_head.weight")])
+    state["updateformer.flow_head.bias"] = torch.cat(
+        [state["updateformer.flow_head.bias"], state.pop("updateformer.vis_conf_head.bias")])
+    model, _ = _dynpt(state, "cotracker3_online", tmp_path)
+    assert torch.equal(model.transformer.vis_conf_head.bias, golden["online"]["state"]["updateformer.vis_conf_head.bias"])
+
+
+def test_refusals(golden, tmp_path):
+    state = golden["offline"]["state"]
+    plain = tmp_path / "plain.pth"
+    torch.save(state, plain)
+    tiny = build_model(load_config("dynpt", "model/tiny").model)  # other sizes, DynPT's time embedding
+    with pytest.raises(UserError, match="time_embedding=cotracker3"):
+        cw.load_into(tiny, plain)
+    wrong = build_model({**_base(), "corr_levels": 3})
+    with pytest.raises(UserError, match="token inputs"):
+        cw.load_into(wrong, plain)
+    small_cfg = cw.config_from_state(state, _base(), "cotracker3_offline")
+    wider = build_model({**small_cfg, "corr_hidden_dim": 64})
+    with pytest.raises(UserError, match=r"corr.mlp.0.weight is \(32, 81\) in the file but \(64, 81\)"):
+        cw.load_into(wider, plain)
+    extra = tmp_path / "extra.pth"
+    torch.save({**state, "updateformer.extra.weight": torch.zeros(1)}, extra)
+    small = build_model(small_cfg)
+    with pytest.raises(UserError, match="not part of CoTracker3's network"):
+        cw.load_into(small, extra)
+    partial = tmp_path / "partial.pth"
+    torch.save({k: v for k, v in state.items() if not k.startswith("fnet.conv3")}, partial)
+    with pytest.raises(UserError, match="no CoTracker3 tensor for DynPT's cnn.conv3"):
+        cw.load_into(small, partial)
+    other = tmp_path / "other.pth"
+    torch.save({"weights": torch.zeros(1)}, other)
+    with pytest.raises(UserError, match="not a CoTracker3 checkpoint"):
+        cw.read_state(other)
+    with pytest.raises(UserError, match="does not exist"):
+        cw.read_state(tmp_path / "missing.pth")
+    with pytest.raises(UserError, match="expected cotracker3:"):
+        cw.parse_init("cotracker3:")
+
+
+def test_default_presets_unchanged():
+    """Existing presets keep DynPT's own windowing, embedding and sampling (old checkpoints load)."""
+    cfg = plain_config(load_config("dynpt", "tiny-cpu").model)
+    assert (cfg["windowing"], cfg["time_embedding"], cfg["sampling"]) == ("causal", "hidden", "centers")
+    old = {k: v for k, v in cfg.items() if k not in ("windowing", "time_embedding", "time_emb_len",
+                                                     "sampling", "init_from")}
+    assert "transformer.time_emb" not in build_model(old).state_dict()
+
+
+def test_load_tracker_reads_a_cotracker3_file(golden, tmp_path):
+    import numpy as np
+
+    import dynpt
+
+    path = tmp_path / "scaled_online.pth"
+    torch.save(golden["online"]["state"], path)
+    tracker = dynpt.load_tracker(f"cotracker3:{path}", device="cpu")
+    assert tracker.model.config["windowing"] == "cotracker3_online"  # 8-row time embedding
+    video = golden["video"][0].permute(0, 2, 3, 1).numpy()
+    q = golden["queries"][0].numpy()[:3]
+    res = tracker.track(video, q, support_grid=2)
+    assert res.tracks.shape == (18, 3, 2) and np.isfinite(res.tracks).all()
+
+
+@pytest.mark.parametrize("preset,trained", [
+    ("finetune-mobility", {"mobility"}),
+    ("finetune-mobility-fusion", {"mobility", "fusion"}),
+    ("finetune-full", {"cnn", "correlation", "transformer", "mobility", "fusion"}),
+])
+def test_finetune_recipes_train_their_parts(preset, trained):
+    """Each recipe's parameter groups: the parts it trains, at lr x lr_scale; the rest frozen."""
+    from dynpt.train import PARTS, param_groups
+
+    over = ["model.encoder_3d.random_init=true", "model.encoder_3d.require_checkpoint=false",
+            "model.encoder_3d.depth=2", "model.encoder_3d.embed_dim=64", "model.encoder_3d.num_heads=2",
+            "model.encoder_3d.layers=[0]"] if preset != "finetune-mobility" else []
+    cfg = load_config("dynpt", preset, overrides=over)
+    assert cfg.model.windowing == "cotracker3_offline" and cfg.model.init_from == "cotracker3:"
+    model = build_model(cfg.model)
+    groups = param_groups(model, cfg.train.lr, cfg.train.lr_scale)
+    assert {g["name"] for g in groups} == trained
+    for g in groups:
+        assert g["lr"] == pytest.approx(cfg.train.lr * cfg.train.lr_scale[g["name"]])
+    for name, p in model.named_parameters():
+        part = next((k for k, pre in PARTS.items() if name.startswith(pre)), "encoder_3d")
+        assert p.requires_grad == (part in trained), name
+
+
+def test_fusion_starts_as_identity(golden, tmp_path):
+    """With the 3D encoder, the fusion conv starts as identity on the CNN features: CoTracker3's outputs."""
+    g = golden["offline"]
+    path = tmp_path / "ct3.pth"
+    torch.save(g["state"], path)
+    cfg = cw.config_from_state(g["state"], _base(), "cotracker3_offline")
+    cfg["encoder_3d"].update(random_init=True, depth=1, embed_dim=32, num_heads=2, layers=[0])
+    model = build_model(cfg)
+    fresh = cw.load_into(model, path)
+    assert {"vit_proj.weight", "fuse.weight", "transformer.mobility_head.weight"} <= set(fresh)
+    with torch.no_grad():
+        out = model.eval()(golden["video"], golden["queries"], iters=3)
+    assert (out.coords[-1][0] - g["tracks"]).norm(dim=-1).max() < 1e-3
+
+
+def test_param_groups_refuse_unknown_parts():
+    from dynpt.train import param_groups
+
+    model = build_model(load_config("dynpt", "model/tiny").model)
+    with pytest.raises(UserError, match="unknown part"):
+        param_groups(model, 1e-3, {"cnn": 1.0, "heads": 1.0})
+    with pytest.raises(UserError, match="freezes every part"):
+        param_groups(model, 1e-3, {k: 0.0 for k in ("cnn", "correlation", "transformer", "mobility", "fusion")})
