@@ -379,7 +379,7 @@ def test_datagen_workers_exit_with_their_parent_and_ctrl_c_says_what_it_finishes
     proc.wait()
     wait_for(lambda: not any(alive(pid) for pid in spawned), 20, "the orphaned workers to exit")
 
-    proc = datagen_process(tmp_path / "b", workers=2, num_scenes=6)
+    proc = datagen_process(tmp_path / "b", workers=2, num_scenes=60)  # cannot finish before the signal
     wait_for(lambda: len(children(proc.pid)) >= 3 or proc.poll() is not None, 120, "the workers")
     time.sleep(1.0)
     proc.send_signal(signal.SIGINT)  # the parent alone, not its process group
