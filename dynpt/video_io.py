@@ -99,9 +99,12 @@ def resize_long_side(video: np.ndarray, size: int | None = None, max_size: int |
     """`video` uint8 (T,H,W,3) resized (area / bilinear) so that its long side is `size` pixels, or
     at most `max_size` (never enlarged); both None: unchanged. Aspect ratio kept."""
     T, H, W = video.shape[:3]
-    target = size if size else (min(max_size, max(H, W)) if max_size else max(H, W))
-    if target < 8:
-        raise UserError(f"--size/--max-size {target} is too small; give at least 8 pixels")
+    if not size and not max_size:
+        return video  # the tracker itself names the smallest frame it can take
+    asked = size or max_size
+    if asked < 8:
+        raise UserError(f"--size/--max-size {asked} is too small; give at least 8 pixels")
+    target = size if size else min(max_size, max(H, W))
     if target == max(H, W):
         return video
     scale = target / max(H, W)
