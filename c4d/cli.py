@@ -112,12 +112,17 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"c4d: error: {exc}", file=sys.stderr)
         return 2
-    except OSError as exc:  # a write no command turned into a UserError: still one line
+    except OSError as exc:  # one of the system no command turned into a UserError: still one line
         from c4d_core.files import DISK_ERRNOS, disk_error
 
-        if exc.errno not in DISK_ERRNOS or verbose:
+        if exc.errno is None:  # not the operating system's: a bug, shown in full
             raise
-        print(f"c4d: error: {disk_error(exc.filename or '?', exc)}", file=sys.stderr)
+        if verbose:
+            traceback.print_exc()
+        verb = "write" if exc.errno in DISK_ERRNOS else "use"  # DISK_ERRNOS: errors of writes
+        message = (disk_error(exc.filename, exc, verb) if exc.filename is not None
+                   else exc.strerror or exc)
+        print(f"c4d: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("c4d: interrupted", file=sys.stderr)

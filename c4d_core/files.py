@@ -25,8 +25,18 @@ DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, e
                          errno.EPERM, errno.ENOTDIR, errno.EISDIR, errno.EEXIST})
 
 
-def disk_error(path: str | os.PathLike, exc: OSError) -> UserError:
-    """The `UserError` for a failed write of `path` (disk full, permissions, read-only disk)."""
+def _lstat_or_none(path: Path) -> os.stat_result | None:
+    """`os.lstat(path)`, or None when it cannot be read (missing, name too long, no access)."""
+    try:
+        return os.lstat(path)
+    except OSError:
+        return None
+
+
+def disk_error(path: str | os.PathLike, exc: OSError, verb: str = "write") -> UserError:
+    """The `UserError` for a failed `verb` ("write", or "use" when unknown) of `path`, with the
+    advice that fits `exc.errno` (disk full, permissions, read-only disk, a file or a dangling
+    symbolic link where a folder should be, a missing folder, a name too long)."""
     if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
         why = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
                errno.EFBIG: "file size limit exceeded"}[exc.errno]
@@ -34,21 +44,51 @@ def disk_error(path: str | os.PathLike, exc: OSError) -> UserError:
             f"{why} while writing {path}; free some space or choose another "
             "output folder, then run the same command again: finished files are kept"
         )
-    if exc.errno in (errno.ENOTDIR, errno.EEXIST):
-        parent = next((p for p in (Path(path), *Path(path).parents) if p.exists()), None)
-        if parent is not None and not parent.is_dir():
-            return UserError(f"cannot write {path}: {parent} is a file, not a folder; choose "
-                             "another output folder")
-    return UserError(f"cannot write {path}: {exc.strerror or exc}; choose a writable output folder")
+    if exc.errno == errno.ENAMETOOLONG:
+        return UserError(f"cannot {verb} {path}: the name is too long for the file system (at most "
+                         "255 bytes per name); choose a shorter path")
+    target = Path(path)
+    nearest, missing = target, None  # the nearest existing entry, the missing folder below it
+    for entry in (target, *target.parents):
+        if _lstat_or_none(entry) is not None:
+            nearest = entry
+            break
+        missing = entry
+    if os.path.islink(nearest) and not os.path.exists(nearest):
+        return UserError(f"cannot {verb} {path}: {nearest} is a dangling symbolic link (to "
+                         f"{os.readlink(nearest)}, which does not exist); remove it or choose "
+                         "another output folder")
+    if exc.errno in (errno.ENOTDIR, errno.EEXIST) and not os.path.isdir(nearest):
+        return UserError(f"cannot {verb} {path}: {nearest} is a file, not a folder; choose "
+                         "another output folder")
+    if exc.errno == errno.ENOENT and nearest != target:
+        if nearest != target.parent:
+            return UserError(f"cannot {verb} {path}: the folder {missing} does not exist; "
+                             "create it or choose another output folder")
+        return UserError(f"cannot {verb} {path}: no such file, and its folder {nearest} does not "
+                         "accept new ones (a system folder?); check the path or choose another "
+                         "output folder")
+    return UserError(f"cannot {verb} {path}: {exc.strerror or exc}; choose a writable output folder")
 
 
-def _remove_quietly(path: Path) -> None:
+def remove_quietly(path: Path) -> None:
     """Delete `path` if it exists; a failure (read-only disk, a file as folder) is not reported,
     so that it never hides the error that made the cleanup necessary."""
     try:
         path.unlink(missing_ok=True)
     except OSError:
         pass
+
+
+def make_folder(path: str | os.PathLike) -> Path:
+    """Create the folder `path` and its parents (an existing one is fine); returns `path`. A
+    failure (a file or a dangling link in the way, a read-only disk) becomes a `UserError`."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise disk_error(path, exc) from exc
+    return path
 
 
 @contextlib.contextmanager
@@ -73,7 +113,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             raise
         raise disk_error(path, exc) from exc
     finally:
-        _remove_quietly(tmp)
+        remove_quietly(tmp)
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:

@@ -6,13 +6,17 @@ numpy, OpenCV and Pillow only; the pictures themselves are drawn by `c4d_core.dr
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import resource
+import shutil
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from c4d_core.errors import UserError
 from c4d_core.files import atomic_path
 
 # extension -> OpenCV fourcc; .gif is written with Pillow instead
@@ -53,7 +57,8 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) 
     .mp4 (MPEG-4 part 2, plays in desktop players), .webm (VP8, plays in web browsers), .avi
     (MJPEG) or .gif (Pillow, loops, shows inline on code-hosting sites). Written to a temporary
     name and renamed, so an existing file is never left half-written. Odd sizes are padded to
-    even ones, which some codecs need.
+    even ones, which some codecs need. OpenCV's videos are decoded again before the rename, as
+    its writer ignores failed writes: a full disk then becomes a `UserError` naming `path`.
     """
     path = Path(path)
     frames = np.asarray(frames)
@@ -86,12 +91,43 @@ def _encode_video(path: Path, frames: np.ndarray, fps: float) -> None:
         with _stderr_silenced():  # FFmpeg prints a warning about the VP8 tag, then maps it itself
             writer = cv2.VideoWriter(str(path), fourcc, float(fps), (width, height))
         if not writer.isOpened():
-            raise OSError(f"OpenCV cannot encode {suffix} here; write .gif or .avi instead")
+            raise UserError(f"OpenCV cannot encode {suffix} videos here (its FFmpeg lacks the "
+                            f"{_VIDEO_CODECS[suffix]} codec); write .gif or .avi instead")
         try:
             for frame in frames:
                 writer.write(np.ascontiguousarray(frame[..., ::-1]))
         finally:
             writer.release()
+        _check_written(path, len(frames), height, width)
+
+
+def _check_written(path: Path, num_frames: int, height: int, width: int) -> None:
+    """Raise unless the video at `path` decodes to `num_frames` frames (of `height` x `width`).
+
+    OpenCV's writer ignores failed writes, so a torn file would otherwise pass for a video: at
+    the process's file size limit this raises OSError(EFBIG), with less than a raw frame (or
+    1 MiB) free on the disk OSError(ENOSPC), both naming `path`; otherwise the encoder itself
+    wrote a video that does not decode (VP8 at 2x2 pixels does), a `UserError`. Decoding costs
+    about a third of the encoding.
+    """
+    count = 0
+    with _stderr_silenced():  # FFmpeg prints its complaints about a torn file
+        capture = cv2.VideoCapture(str(path))
+        while count <= num_frames and capture.grab():
+            count += 1
+        capture.release()
+    if count == num_frames:
+        return
+    written = f"the video written holds {count} of its {num_frames} frames"
+    frame_bytes = height * width * 3
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY and path.stat().st_size >= limit - frame_bytes:
+        raise OSError(errno.EFBIG, f"{os.strerror(errno.EFBIG)}: {written}", str(path))
+    if shutil.disk_usage(path.parent).free < max(frame_bytes, 1 << 20):
+        raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)}: {written}", str(path))
+    raise UserError(f"OpenCV's {_VIDEO_CODECS[path.suffix.lower()]} encoder wrote a video that "
+                    f"does not decode at {width}x{height} pixels ({written}); write .gif or .avi "
+                    "instead")
 
 
 def read_video_frames(path: str | os.PathLike) -> np.ndarray:

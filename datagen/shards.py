@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from c4d_core.errors import UserError
-from c4d_core.files import disk_error, json_default
+from c4d_core.files import disk_error, json_default, remove_quietly
 from datagen.scene import Scene
 
 FORMAT_VERSION = 3  # 3: a `checksums.json` member; 2: rgb as raw `rgb.npy` (~50x faster than PNG)
@@ -371,7 +371,8 @@ class ShardWriter:
         self.count += 1
 
     def close(self) -> Path:
-        """Finish the tar, flush it to disk and rename it to its final name."""
+        """Finish the tar, flush it to disk and rename it to its final name; if that fails (the
+        disk fills during the last flush), the partial file is removed before the error."""
         try:
             self._tar.close()
             self._file.flush()
@@ -379,6 +380,7 @@ class ShardWriter:
             self._file.close()
             os.replace(self.partial, self.path)
         except OSError as exc:
+            self.abort()
             raise disk_error(self.path, exc) from exc
         return self.path
 
@@ -389,7 +391,7 @@ class ShardWriter:
                 close()
             except OSError:
                 pass  # the file is being deleted anyway (e.g. the disk is full)
-        self.partial.unlink(missing_ok=True)
+        remove_quietly(self.partial)
 
     def __enter__(self) -> "ShardWriter":
         return self

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from c4d.inspect import html, plots
 from c4d_core import draw
 from c4d_core.errors import UserError
-from c4d_core.files import write_json
+from c4d_core.files import make_folder, write_json
 from c4d_core.video import write_image, write_video
 from datagen import shards
 from datagen.scene import Scene
@@ -334,8 +334,7 @@ def build_dataset_report(source, out: str | Path, cfg, split: str | None = None,
     Returns the summary (also written to `out/summary.json`). Unreadable samples are skipped,
     counted and listed; `check_dataset` explains them in full.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(out)
     values: dict[str, list[np.ndarray]] = {name: [] for name in STATISTICS}
     counts = {"scenes": 0, "frames": 0, "objects": 0, "tracks": 0, "unreadable": 0}
     presets: dict[str, int] = {}

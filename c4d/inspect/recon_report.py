@@ -21,7 +21,7 @@ import trimesh
 from c4d.inspect import html, plots, point_render
 from c4d_core import draw, geometry
 from c4d_core.errors import UserError
-from c4d_core.files import write_json
+from c4d_core.files import make_folder, write_json
 from c4d_core.video import write_image, write_video
 from c4d_pipeline.cli_eval_recon import read_reconstruction, scene_frame_indices
 from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
@@ -346,8 +346,7 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
     the same video by label (e.g. {"GA only": path}), drawn beside it in the trajectory plot and
     scored in the summary. Returns the summary.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(out)
     recon = load_reconstruction(path)
     written: dict[str, Path] = {}
     fps = cfg.fps
