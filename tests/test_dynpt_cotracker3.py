@@ -209,3 +209,108 @@ def test_param_groups_refuse_unknown_parts():
         param_groups(model, 1e-3, {"cnn": 1.0, "heads": 1.0})
     with pytest.raises(UserError, match="freezes every part"):
         param_groups(model, 1e-3, {k: 0.0 for k in ("cnn", "correlation", "transformer", "mobility", "fusion")})
+
+
+# --- stand-ins for the released files (tests/cotracker3_layout.py) --------------------------------
+
+# the DynPT sizes of cotracker3_golden.pt (what `config_from_state` reads from its shapes)
+SMALL = ["model.cnn_widths=[8,12,16,16]", "model.feature_dim=16", "model.corr_levels=2",
+         "model.corr_radius=1", "model.corr_hidden_dim=32", "model.corr_out_dim=16",
+         "model.hidden_dim=48", "model.num_heads=1", "model.depth=1", "model.mlp_ratio=2.0",
+         "model.num_virtual_tracks=4", "model.time_emb_len=8"]
+TINY_3D = ["model.encoder_3d.random_init=true", "model.encoder_3d.require_checkpoint=false",
+           "model.encoder_3d.depth=2", "model.encoder_3d.embed_dim=64", "model.encoder_3d.num_heads=2",
+           "model.encoder_3d.layers=[0]"]
+
+
+@pytest.mark.parametrize("kind", ["offline", "online"])
+def test_stand_in_layout_is_cotracker3s(golden, kind):
+    """tests/cotracker3_layout.py writes the names and shapes co-tracker's own classes write
+    (the golden state dicts), and its transform oracle agrees with the loader on them."""
+    from tests.cotracker3_layout import expected_dynpt, released_state
+
+    state = golden[kind]["state"]
+    cfg = cw.config_from_state(state, _base())
+    made = released_state(cfg)
+    assert {k: tuple(v.shape) for k, v in made.items()} == {k: tuple(v.shape) for k, v in state.items()}
+    mapped, _ = cw.map_state(state, cfg, build_model(cfg).state_dict())
+    expected = expected_dynpt(state, cfg)
+    assert mapped.keys() == expected.keys()
+    assert all(torch.equal(mapped[k], expected[k]) for k in mapped)
+    released = released_state(_base())  # the released sizes: 188 tensors, 25.4 M values
+    assert len(released) == 188 and sum(v.numel() for v in released.values()) == 25_452_300
+
+
+def _checkpoint(run, step):
+    return torch.load(run / "checkpoints" / f"step_{step:08d}.pt", weights_only=True)["model"]
+
+
+@pytest.mark.parametrize("recipe, wrapped", [("finetune-mobility", False),
+                                             ("finetune-mobility-fusion", True),
+                                             ("finetune-full", False)])
+def test_finetune_from_a_released_file(recipe, wrapped, tmp_path):
+    """`c4d train --config finetune-* --init cotracker3:FILE`: every tensor of the file is in the
+    step-1 checkpoint after the documented transforms; the frozen parts stay so at steps 2 and 3,
+    the trained parts move; `--resume` continues from the run's checkpoint, not the (deleted) file."""
+    from c4d.cli import main
+    from dynpt.train import PARTS
+    from tests.cotracker3_layout import expected_dynpt, write_released
+    from tests.dynpt_testdata import synthetic_shards
+
+    run = tmp_path / "run"
+    over = [*SMALL, *(TINY_3D if recipe != "finetune-mobility" else []),
+            f"data.sources=[{synthetic_shards(12, 3)}]", f"train.out_dir={run}", "data.crop_size=[32,32]",
+            "data.num_frames=6", "data.num_tracks=12", "data.num_workers=0", "train.total_batch=1",
+            "train.batch_size=1", "train.steps=3", "train.ckpt_every=1", "train.log_every=1",
+            "train.keep_last=3", "eval.every=0"]
+    cfg = load_config("dynpt", recipe, overrides=over)
+    model_cfg = plain_config(cfg.model)
+    file = tmp_path / "weights" / "scaled_offline.pth"
+    expected = expected_dynpt(write_released(file, model_cfg, seed=3, wrapped=wrapped), model_cfg)
+    init = ["--config", recipe, "--init", f"cotracker3:{file}", *over]
+    assert main(["train", *init, "train.stop_after=2"]) == 0
+    file.unlink()  # --resume must not need it
+    assert main(["train", *init, "--resume"]) == 0
+    steps = [_checkpoint(run, s) for s in (1, 2, 3)]
+    params = dict(build_model(model_cfg).named_parameters())
+    trained_parts = {p for p, scale in cfg.train.lr_scale.items() if scale > 0}
+
+    def trained(name):
+        part = next((k for k, pre in PARTS.items() if name.startswith(pre)), None)
+        return name in params and part in trained_parts
+
+    frozen = [n for n in expected if not trained(n)]
+    assert "cnn.conv1.weight" in frozen or recipe == "finetune-full"
+    for ckpt in steps:
+        assert all(torch.equal(ckpt[n], expected[n]) for n in frozen)
+    moved = {n for n in expected if trained(n) and not torch.equal(steps[0][n], expected[n])}
+    for part in trained_parts & {"cnn", "correlation", "transformer"}:
+        assert any(n.startswith(PARTS[part]) and not n.startswith(PARTS["mobility"]) for n in moved), part
+    for name in params:  # the trained fresh parts (mobility head, fusion) keep learning after step 1
+        if name.startswith(("transformer.mobility_head.", "vit_proj.", "fuse.")):
+            assert trained(name) == (not torch.equal(steps[0][name], steps[2][name])), name
+
+
+def test_c4d_track_reads_a_released_file(tmp_path):
+    """`c4d track --ckpt cotracker3:FILE`: sizes read from the file's shapes; a file wrapped under
+    `model` tracks the same as the plain one, another file's weights track differently."""
+    import numpy as np
+
+    from c4d.cli import main
+    from dynpt.video_io import write_video
+    from tests.cotracker3_layout import write_released
+
+    cfg = load_config("dynpt", "model/cotracker3-offline", overrides=SMALL).model
+    rng = np.random.default_rng(0)
+    video = write_video(tmp_path / "clip.mp4", rng.integers(0, 255, (6, 32, 40, 3), dtype=np.uint8), fps=10)
+    tracks = {}
+    for name, seed, wrapped in [("plain", 1, False), ("wrapped", 1, True), ("other", 2, False)]:
+        file = tmp_path / f"{name}.pth"
+        write_released(file, plain_config(cfg), seed=seed, wrapped=wrapped)
+        out = tmp_path / name
+        assert main(["track", str(video), "--ckpt", f"cotracker3:{file}", "--out", str(out),
+                     "--grid-size", "16", "--no-backward"]) == 0
+        tracks[name] = np.load(out / "tracks.npz")["tracks"]
+    assert tracks["plain"].shape == (6, 12, 2) and np.isfinite(tracks["plain"]).all()
+    np.testing.assert_array_equal(tracks["plain"], tracks["wrapped"])
+    assert not np.array_equal(tracks["plain"], tracks["other"])
