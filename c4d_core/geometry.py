@@ -56,17 +56,23 @@ def quat_normalize(q: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
+def quat_matrix_entries(w, x, y, z) -> list:
+    """The 9 entries, row-major, of the rotation matrix of the unit quaternion (w,x,y,z).
+
+    Elementwise arithmetic only, so the components may be numpy arrays or torch tensors of any one
+    shape (...): `quat_to_matrix` stacks them with numpy, `c4d_pipeline.scene_params` with torch
+    (differentiable). Each entry has the components' shape (...).
+    """
+    return [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(...,4) unit quaternions (w,x,y,z) -> (...,3,3) rotation matrices."""
-    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
-    rot = np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )  # (...,9)
+    """(...,4) quaternions (w,x,y,z), normalised here -> (...,3,3) rotation matrices."""
+    rot = np.stack(quat_matrix_entries(*np.moveaxis(quat_normalize(q), -1, 0)), axis=-1)  # (...,9)
     return rot.reshape(rot.shape[:-1] + (3, 3))
 
 

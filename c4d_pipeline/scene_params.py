@@ -18,27 +18,21 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from c4d_core.geometry import matrix_to_quat, quat_matrix_entries
+
 FOCAL_BREAK = 20.0
 
 
 def quat_to_rotation(quat: torch.Tensor) -> torch.Tensor:
-    """(...,4) quaternions (w,x,y,z), any norm -> (...,3,3) rotation matrices."""
-    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True)).unbind(-1)
-    rot = torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    )  # (...,9)
-    return rot.reshape(quat.shape[:-1] + (3, 3))
+    """(...,4) quaternions (w,x,y,z), any norm -> (...,3,3) rotation matrices (differentiable; the
+    entries are `c4d_core.geometry.quat_matrix_entries`, the numpy `quat_to_matrix`'s formula)."""
+    entries = quat_matrix_entries(*(quat / quat.norm(dim=-1, keepdim=True)).unbind(-1))
+    return torch.stack(entries, dim=-1).reshape(quat.shape[:-1] + (3, 3))  # (...,9) -> (...,3,3)
 
 
 def rotation_to_quat(rot: torch.Tensor) -> torch.Tensor:
-    """(...,3,3) rotations -> (...,4) quaternions (w,x,y,z); uses the project's numpy helper."""
-    from c4d_core.geometry import matrix_to_quat
-
+    """(...,3,3) rotations -> (...,4) quaternions (w,x,y,z); computed by the numpy `matrix_to_quat`
+    in float64 (initial values only, no gradient)."""
     return torch.as_tensor(matrix_to_quat(rot.detach().cpu().double().numpy()), dtype=rot.dtype)
 
 
@@ -86,13 +80,6 @@ class SceneParams(nn.Module):
         self.edge_log_scale = nn.Parameter(edge_scale.log())  # (E,)
         self.register_buffer("mean_log_scale", edge_scale.log().mean())
         self.num_frames = num_frames
-
-    # -- parameter groups (for freezing in stage 2)
-    def camera_parameters(self) -> list[nn.Parameter]:
-        return [self.quat, self.trans, self.focal_param]
-
-    def edge_parameters(self) -> list[nn.Parameter]:
-        return [self.edge_quat, self.edge_trans, self.edge_log_scale]
 
     # -- derived quantities
     def depth(self) -> torch.Tensor:

@@ -95,10 +95,6 @@ def video(path: str | os.PathLike, page_dir: Path, caption: str | None = None) -
     return tag + (text(caption, "note") if caption else "")
 
 
-def link(path: str | os.PathLike, page_dir: Path, label: str) -> str:
-    return f'<a href="{_relative(path, page_dir)}">{html.escape(label)}</a>'
-
-
 def write_page(path: str | os.PathLike, title: str, fragments: Iterable[str]) -> Path:
     """Write a complete HTML page (through a temporary file) and return its path."""
     path = Path(path)
