@@ -231,12 +231,14 @@ def _has_key(nested: dict, key: str) -> bool:
 
 def add_training_arguments(parser, group: str, default: str | None = None) -> None:
     """`--config` (a preset of configs/<group> or a YAML path), `--resume` and key=value overrides,
-    the arguments every training command takes."""
-    parser.add_argument("--config", required=default is None, default=default,
+    the arguments every training command takes (`training_config` reads them)."""
+    parser.add_argument("--config", default=default,
                         help=f"a preset of configs/{group} ({', '.join(available_presets(group))}) or "
-                        "a YAML path" + (f"; default {default}" if default else ""))
+                        "a YAML path" + (f"; default {default}" if default else "; required unless "
+                                         "--resume continues a run"))
     parser.add_argument("--resume", action="store_true",
-                        help="continue the run in train.out_dir where it stopped, with the config saved there")
+                        help="continue the run in train.out_dir where it stopped, with the config "
+                        "saved there (--config is then not needed)")
     parser.add_argument("overrides", nargs="*", metavar="key=value",
                         help="config overrides, e.g. data.sources=[shards/train] train.steps=1000")
 
@@ -249,12 +251,20 @@ def to_dict(cfg: DictConfig) -> dict:
 def training_config(group: str, args) -> DictConfig:
     """The config of a training command (`args` from `add_training_arguments`): the preset with the
     overrides; with `--resume`, the run folder's resolved `train.out_dir/config.yaml` with the
-    command line's overrides over it, so `--resume` and the run's folder are enough to continue."""
-    cfg = load_config(group, args.config, overrides=args.overrides)
-    saved = Path(cfg.train.out_dir) / "config.yaml"
-    if args.resume and saved.is_file():
-        cfg = load_config(group, saved, overrides=args.overrides)
-    return cfg
+    command line's overrides over it, so `--resume train.out_dir=DIR` is enough to continue (the
+    folder is `--config`'s `train.out_dir`, else the root preset's, unless an override sets it)."""
+    if not args.resume:
+        if args.config is None:
+            raise UserError(f"give --config: a preset of configs/{group} "
+                            f"({', '.join(available_presets(group))}) or a YAML path "
+                            "(or --resume train.out_dir=DIR to continue a run)")
+        return load_config(group, args.config, overrides=args.overrides)
+    out_dir = load_config(group, args.config or schema.ROOTS[group], overrides=args.overrides).train.out_dir
+    saved = Path(out_dir) / "config.yaml"
+    if not saved.is_file():
+        raise UserError(f"no run in {out_dir} to resume (no config.yaml there); start one with "
+                        f"--config PRESET_OR_YAML train.out_dir={out_dir} (without --resume)")
+    return load_config(group, saved, overrides=args.overrides)
 
 
 def to_yaml(cfg: DictConfig | dict) -> str:

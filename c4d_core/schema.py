@@ -30,6 +30,11 @@ ROOTS: dict[str, str] = {
 
 # The largest frame side anything here renders, crops or resizes to (pixels); the smallest.
 MAX_SIDE, MIN_SIDE = 4096, 8
+# The smallest frame side DynPT takes at its network resolution (training crop, model and eval
+# resolution): its CNN's 1/16 features need more than one cell. The value of
+# `dynpt.inference.MIN_SIDE`, written out because this floor module imports nothing of dynpt
+# (tests/test_schema.py checks that the two agree).
+TRACKER_MIN_SIDE = 17
 
 
 @dataclass(frozen=True)
@@ -40,7 +45,8 @@ class Rule:
     low/high: inclusive bounds of a number (of every number of a list); above: exclusive lower bound;
     shape: lengths of a list per nesting level (None = any length); ordered: a list's entries,
     or per coordinate the two rows of a (2, D) box, are non-decreasing;
-    choices: the allowed values; nullable: null is allowed too (meaning given in the preset).
+    choices: the allowed values; nullable: null is allowed too (meaning given in the preset);
+    zero: 0 is allowed too, besides the range (meaning given in the preset, e.g. 'all').
     """
 
     kind: str
@@ -51,6 +57,7 @@ class Rule:
     ordered: bool = False
     choices: tuple = ()
     nullable: bool = False
+    zero: bool = False
     item: str = "float"
 
     def describe(self) -> str:
@@ -81,7 +88,7 @@ class Rule:
                 text = text.replace("  ", " ") + (", non-decreasing" if self.ordered else "")
             else:
                 text = ("an " if text[0] in "aeiou" else "a ") + text
-        return text + (" (or null)" if self.nullable else "")
+        return ("0 or " if self.zero else "") + text + (" (or null)" if self.nullable else "")
 
     def check(self, key: str, value: Any) -> None:
         """Raise `UserError` unless `value` is valid for `key`."""
@@ -102,7 +109,7 @@ class Rule:
             return _shaped(value, self.shape) and all(self._number(v, self.item) for v in _flat(value)) \
                 and (not self.ordered or _ordered(value))
         if self.kind in ("int", "float"):
-            return self._number(value, self.kind)
+            return self._number(value, self.kind) or (self.zero and value == 0 and Rule(self.kind).accepts(value))
         return isinstance(value, {"bool": bool, "str": str}[self.kind])
 
     def _number(self, value: Any, kind: str) -> bool:
@@ -139,8 +146,8 @@ def _ordered(value) -> bool:
 
 
 # --- short names for the rules -------------------------------------------------------------------
-def integer(low: float | None = None, high: float | None = None) -> Rule:
-    return Rule("int", low=low, high=high)
+def integer(low: float | None = None, high: float | None = None, zero: bool = False) -> Rule:
+    return Rule("int", low=low, high=high, zero=zero)
 
 
 def number(low: float | None = None, high: float | None = None, above: float | None = None) -> Rule:
@@ -165,9 +172,14 @@ def texts() -> Rule:
     return Rule("list", item="str")
 
 
-def size(nullable: bool = False) -> Rule:
+def size(nullable: bool = False, low: int = MIN_SIDE) -> Rule:
     """A frame size (H, W) in pixels that datagen renders and the tracker takes."""
-    return Rule("list", shape=(2,), item="int", low=MIN_SIDE, high=MAX_SIDE, nullable=nullable)
+    return Rule("list", shape=(2,), item="int", low=low, high=MAX_SIDE, nullable=nullable)
+
+
+def tracker_size(nullable: bool = False) -> Rule:
+    """A frame size (H, W) in pixels at DynPT's network resolution."""
+    return size(nullable, low=TRACKER_MIN_SIDE)
 
 
 def interval(low: float | None = None, high: float | None = None, above: float | None = None,
@@ -189,6 +201,7 @@ def box() -> Rule:
 SEED = integer(0, 2**32 - 1)
 COUNT, POSITIVE = integer(1), integer(0)  # at least one; zero or more
 PIXELS = number(0.0)
+ONE_CYCLE_STEPS = integer(3)  # DynPT's OneCycle schedule: a warm-up of 2 steps and an annealing one
 
 # --- the rules of every group, key by key --------------------------------------------------------
 RULES: dict[str, dict[str, Rule]] = {
@@ -234,7 +247,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "model.depth": COUNT, "model.mlp_ratio": number(above=0), "model.num_virtual_tracks": COUNT,
         "model.fourier_freqs": POSITIVE, "model.displacement_scale": numbers(2, above=0),
         "model.window_len": integer(2), "model.window_stride": COUNT, "model.train_iters": COUNT,
-        "model.eval_iters": COUNT, "model.resolution": size(nullable=True),
+        "model.eval_iters": COUNT, "model.resolution": tracker_size(nullable=True),
         "model.visibility_threshold": fraction(),
         "model.windowing": text("causal", "cotracker3_online", "cotracker3_offline"),
         "model.time_embedding": text("hidden", "cotracker3"), "model.time_emb_len": integer(2),
@@ -245,7 +258,9 @@ RULES: dict[str, dict[str, Rule]] = {
         "model.encoder_3d.depth": COUNT, "model.encoder_3d.num_heads": COUNT,
         "model.encoder_3d.mlp_ratio": number(above=0), "model.encoder_3d.rope_freq": number(above=0),
         "data.sources": texts(), "data.weights": numbers(None, low=0.0), "data.num_frames": integer(2),
-        "data.max_stride": COUNT, "data.crop_size": size(), "data.num_tracks": COUNT,
+        # a crop larger than the shards' frames is valid (augment scales them up to cover it, as
+        # tiny-cpu-2x does), so it is not checked against the data
+        "data.max_stride": COUNT, "data.crop_size": tracker_size(), "data.num_tracks": COUNT,
         "data.random_query_fraction": fraction(), "data.moving_track_fraction": fraction(),
         "data.max_offscreen_px": PIXELS, "data.shuffle_buffer": COUNT, "data.num_workers": POSITIVE,
         "data.max_bad_fraction": fraction(),
@@ -256,7 +271,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "data.augment.blur_prob": fraction(), "data.augment.blur_sigma": interval(above=0),
         "data.augment.eraser_prob": fraction(), "data.augment.eraser_max_boxes": POSITIVE,
         "data.augment.eraser_size_px": interval(1, item="int"),
-        "train.out_dir": text(), "train.steps": COUNT, "train.stop_after": POSITIVE,
+        "train.out_dir": text(), "train.steps": ONE_CYCLE_STEPS, "train.stop_after": POSITIVE,
         "train.total_batch": COUNT, "train.batch_size": COUNT, "train.lr": number(above=0),
         "train.weight_decay": number(0.0), "train.adam_eps": number(above=0),
         "train.pct_start": number(high=1.0, above=0), "train.div_factor": number(above=0),
@@ -272,13 +287,14 @@ RULES: dict[str, dict[str, Rule]] = {
         "loss.conf_radius_px": number(above=0), "loss.mobility": number(0.0),
         "loss.mobility_pos_weight": number(above=0),
         "eval.source": text(), "eval.every": POSITIVE, "eval.num_scenes": POSITIVE,
-        "eval.num_tracks": COUNT, "eval.resolution": size(), "eval.seed": SEED,
+        "eval.num_tracks": COUNT, "eval.resolution": tracker_size(), "eval.seed": SEED,
         "eval.query_mode": text("first", "strided"), "eval.best_metric": text(),
     },
     "c4d": {
         "seed": SEED, "device": text(), "threads": POSITIVE, "flow": text(),
-        "video.stride": COUNT, "video.max_frames": POSITIVE,
-        "pointmaps.checkpoint": text(), "pointmaps.size": POSITIVE, "pointmaps.batch": POSITIVE,
+        "video.stride": COUNT, "video.max_frames": integer(2, zero=True),  # 0: all; 1 frame: no pair
+        "pointmaps.checkpoint": text(), "pointmaps.size": integer(0, MAX_SIDE),  # 0: the checkpoint's
+        "pointmaps.batch": POSITIVE,
         "pointmaps.precision": text("fp32", "bf16"),
         "tracker.checkpoint": text(), "tracker.grid_size": COUNT,
         "graph.window": COUNT, "graph.stride": COUNT, "graph.start": COUNT, "graph.symmetric": flag(),
@@ -309,7 +325,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "data.presets": texts(), "data.train_scenes": COUNT, "data.val_scenes": COUNT,
         "data.resolution": size(), "data.frames": integer(2), "data.scenes_per_shard": COUNT,
         "data.workers": COUNT,
-        "train.config": text(), "train.steps": COUNT, "train.overrides": texts(),
+        "train.config": text(), "train.steps": ONE_CYCLE_STEPS, "train.overrides": texts(),
         "eval.num_tracks": COUNT,
         "recon.preset": text(), "recon.num_scenes": COUNT, "recon.config": text(),
         "recon.flow": text(), "recon.overrides": texts(),

@@ -1,9 +1,10 @@
 """`c4d run VIDEO [key=value ...] --out DIR --pointmaps CKPT [--tracker CKPT] [--flow dis|raft:PATH]`.
 
 Every flag but `--out`, `--preset` and `--config` stands for a key of configs/c4d (`--pointmaps`
-is `pointmaps.checkpoint`, `--tracker` is `tracker.checkpoint`, ...; see `RUN_FLAGS`), so a YAML
-file given with `--config` (or as `--preset`) can hold a whole run; a key set both by its flag
-and by `key=value` is an error. OUT keeps the resolved config as `config.yaml`.
+is `pointmaps.checkpoint`, `--tracker` is `tracker.checkpoint`, `--threads` is `threads`, ...;
+see `RUN_FLAGS`), so a YAML file given with `--config` (or as `--preset`) can hold a whole run; a
+key set both by its flag and by `key=value` is an error. The video's frame count is checked before
+anything is written; OUT keeps the resolved config as `config.yaml`.
 
 Reconstructs a monocular video with C4D: DUSt3R preprocessing of the frames, pairwise pointmaps
 from a DUSt3R/MASt3R/MonST3R checkpoint, optical flow, DynPT tracks (or, without a tracker, the
@@ -25,6 +26,7 @@ from tqdm import tqdm
 from c4d_core.config import flag_overrides, load_config, to_yaml
 from c4d_core.errors import UserError
 from c4d_core.files import write_text
+from c4d_core.system import configure_threads
 
 log = logging.getLogger("c4d.run")
 
@@ -32,7 +34,8 @@ log = logging.getLogger("c4d.run")
 # flag (argparse dest) -> the config key it sets
 RUN_FLAGS = {"pointmaps": "pointmaps.checkpoint", "tracker": "tracker.checkpoint", "flow": "flow",
              "size": "pointmaps.size", "stride": "video.stride", "max_frames": "video.max_frames",
-             "grid_size": "tracker.grid_size", "pointmap_batch": "pointmaps.batch"}
+             "grid_size": "tracker.grid_size", "pointmap_batch": "pointmaps.batch",
+             "threads": "threads"}  # --threads: c4d.cli's flag of every subcommand
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def load_run_config(args: argparse.Namespace):
     """The c4d config of a run: preset, --config files, then key=value overrides and the flags."""
-    flags = {key: getattr(args, dest) for dest, key in RUN_FLAGS.items()}
+    flags = {key: getattr(args, dest, None) for dest, key in RUN_FLAGS.items()}
     overrides = [*args.overrides, *flag_overrides(flags, args.overrides)]
     return load_config("c4d", args.preset, config_files=args.config, overrides=overrides)
 
@@ -90,10 +93,12 @@ def run(args: argparse.Namespace) -> int:
     from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
     from c4d_pipeline.flow import build_flow
     from c4d_pipeline.pipeline import reconstruct
+    from c4d_pipeline.scene_graph import graph_from_config
     from c4d_pipeline.video_input import load_video_input
 
     # 1. Everything the user named, checked before any heavy work.
     cfg = load_run_config(args)
+    configure_threads(threads=cfg.threads)  # for the networks, tracking and flow alike
     if not Path(args.video).exists():
         raise UserError(f"video {args.video!r} does not exist; pass a video file or a folder of frames")
     if not cfg.pointmaps.checkpoint:
@@ -131,6 +136,10 @@ def run(args: argparse.Namespace) -> int:
     seconds["read_video"] = time.perf_counter() - start
     log.info("%d frames of %dx%d (source %dx%d)", T, W, H, video.preprocessing.source_hw[1],
              video.preprocessing.source_hw[0])
+    if T < 2:
+        raise UserError(f"{args.video} gives {T} frame(s) at video.stride={cfg.video.stride} (--stride); "
+                        "a reconstruction needs at least 2: lower the stride or use a longer video")
+    graph_from_config(T, cfg.graph)  # a graph that does not connect the frames: refused here
 
     write_text(out / "config.yaml", to_yaml(cfg))  # every input read: what runs now
 

@@ -17,6 +17,7 @@ import torch
 
 from c4d_core.config import to_dict
 from c4d_core.errors import UserError
+from c4d_core.system import configure_threads
 from c4d_pipeline import motion_mask as mm
 from c4d_pipeline.alignment import initialise
 from c4d_pipeline.objectives import sample_points
@@ -120,8 +121,8 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
     """
     check_frames(frames)
     num_frames, h, w = frames.shape[:3]
-    if cfg.threads > 0:
-        torch.set_num_threads(int(cfg.threads))
+    if cfg.threads > 0:  # a library caller's config (`c4d run` set them before loading the networks)
+        configure_threads(threads=cfg.threads)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
     edges = graph_from_config(num_frames, cfg.graph)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from c4d_core.config import load_config, parse_overrides
+from c4d_core.config import flag_overrides, load_config, parse_overrides
 from c4d_core.errors import UserError
 
 
@@ -17,8 +17,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True,
                         help="datagen shards (directory, .tar or glob) or a TAP-Vid pickle "
                              "(tapvid_davis.pkl, or the folder of Kinetics *_of_0010.pkl)")
-    parser.add_argument("--mode", choices=("first", "strided"), default="first",
-                        help="TAP-Vid query mode (default: first)")
+    parser.add_argument("--mode", choices=("first", "strided"), default=None,
+                        help="TAP-Vid query mode (key eval.query_mode; default: the checkpoint's "
+                        "own, else first)")
     parser.add_argument("--out", default=None,
                         help="folder for eval.json and eval.md (default: next to the checkpoint)")
     parser.add_argument("--config", default=None,
@@ -31,12 +32,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def eval_config(ckpt: dict, config: str | None, overrides: list[str]):
     """The `eval:` section used: `config`'s if given, else the one saved with the checkpoint by
-    `c4d train` (its own resolution and track count), else paper-gpu's; `overrides` on top."""
+    `c4d train` (its own resolution, track count and query mode; keys it lacks from paper-gpu),
+    else paper-gpu's; `overrides` on top."""
     cfg = load_config("dynpt", config or "paper-gpu", overrides=overrides).eval
     saved = ckpt["extra"].get("train_config", {}).get("eval")
     if config or not saved:
         return cfg
-    return OmegaConf.merge(saved, parse_overrides(overrides).get("eval", {}))
+    return OmegaConf.merge(cfg, saved, parse_overrides(overrides).get("eval", {}))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -46,24 +48,26 @@ def run(args: argparse.Namespace) -> int:
     from dynpt.inference import Tracker
 
     ckpt = load_checkpoint(args.ckpt)
-    cfg = eval_config(ckpt, args.config, args.overrides)
+    overrides = [*args.overrides, *flag_overrides({"eval.query_mode": args.mode}, args.overrides)]
+    cfg = eval_config(ckpt, args.config, overrides)
+    mode = cfg.query_mode
     tracker = Tracker(model_from_checkpoint(ckpt, args.ckpt), args.device)
     skipped: list[str] = []  # scenes that could not be read (warned about, counted in the table)
     items, kind = load_source(args.data, cfg, skipped)
     if not items:
         raise UserError(f"no readable scene in {args.data} ({len(skipped)} skipped, see the "
                         "warnings above); check it with `c4d inspect SOURCE --check`")
-    result = evaluate_items(tracker, items, args.mode)
+    result = evaluate_items(tracker, items, mode)
     # The reference that gives the numbers a meaning: no motion, always visible, all static.
-    baseline = evaluate_items(ZeroMotionBaseline(), items, args.mode)
+    baseline = evaluate_items(ZeroMotionBaseline(), items, mode)
     for summary in (result["summary"], baseline["summary"]):
         summary["num_skipped"] = len(skipped)
     size = "x".join(str(v) for v in cfg.resolution)
     tracks = f", {cfg.num_tracks} tracks per video" if kind == "shards" else ""
-    title = f"{Path(args.data).name} ({args.mode} queries, videos at {size}{tracks})"
+    title = f"{Path(args.data).name} ({mode} queries, videos at {size}{tracks})"
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
-    out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{args.mode}"
-    info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": args.mode,
+    out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{mode}"
+    info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": mode,
             "skipped": skipped,
             "resolution": list(cfg.resolution), "num_tracks": cfg.num_tracks if kind == "shards" else None}
     json_path, md_path = write_report(result, baseline, out, title, info)

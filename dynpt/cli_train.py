@@ -36,7 +36,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--nproc-per-node must be at least 1, got {args.nproc_per_node}")
     if args.nproc_per_node > 1 and "LOCAL_RANK" not in os.environ:
         check_schedule(cfg.train, args.nproc_per_node)  # a mistake: one line, no process started
-        child = ["--config", args.config, *args.overrides, *(["--resume"] if args.resume else [])]
+        child = [*(["--config", args.config] if args.config else []), *args.overrides,
+                 *(["--resume"] if args.resume else [])]
         return launch(args.nproc_per_node, child, verbose=getattr(args, "verbose", False))
     configure_threads(workers=cfg.data.num_workers, threads=cfg.threads)
     train(cfg, resume=args.resume)

@@ -177,9 +177,12 @@ class Tracker:
         cfg = self.model.config
         h, w = cfg["resolution"] or (H, W)
         if min(h, w) < MIN_SIDE:
-            raise UserError(f"video frames of {W}x{H} pixels are too small: the tracker needs at "
-                            f"least {MIN_SIDE}x{MIN_SIDE} (its coarsest features are 1/16 of the "
-                            "frame); upscale the video first")
+            origin = ("the checkpoint's model.resolution" if cfg["resolution"] else "the frames' own "
+                      "size: --size/--max-size of c4d track, --size of c4d run, eval.resolution of "
+                      "c4d eval")
+            raise UserError(f"the tracker's network size {w}x{h} pixels ({origin}) is too small: it "
+                            f"needs at least {MIN_SIDE}x{MIN_SIDE} (its coarsest features are 1/16 "
+                            "of the frame)")
         sx, sy = w / W, h / H
         scaled = queries.copy()
         scaled[:, 1] = (queries[:, 1] + 0.5) * sx - 0.5

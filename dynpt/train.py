@@ -9,9 +9,11 @@ Files in `train.out_dir`: `config.yaml`, `checkpoints/step_XXXXXXXX.pt` (the las
 `eval.best_metric`, only with `eval.source`), `log.jsonl` (one line
 per step: losses, learning rate), `tb/` (TensorBoard). A checkpoint holds the model, optimiser,
 scheduler, step, RNG states and the data-stream position, so `--resume` continues the same run.
-`--resume` starts from the newest readable step checkpoint (a damaged newest one is skipped with
-a warning), drops log lines past its step (and a torn last line), and rebuilds the OneCycle
-annealing to end at a changed `train.steps` (docs/TRAINING.md).
+`--resume` starts from the newest readable step checkpoint, else from a readable `last.pt` (a
+damaged one is renamed to `*.pt.bad` with a warning, so pruning never keeps it instead of a good
+one), drops log lines past its step (and a torn last line), and rebuilds the OneCycle annealing
+to end at a changed `train.steps` (docs/TRAINING.md). Every run first deletes the temporary
+files a killed checkpoint write left in `checkpoints/`.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import logging
 import math
 import os
 import random
+import re
 import shutil
 import threading
 import time
@@ -84,8 +87,6 @@ def check_schedule(tc, world_size: int) -> int:
     others exit with the same status and no message.
     """
     try:
-        if tc.steps < 3:
-            raise UserError(f"train.steps={tc.steps}: the OneCycle schedule needs at least 3 steps")
         return accumulation_steps(tc.total_batch, tc.batch_size, world_size)
     except UserError:
         if int(os.environ.get("RANK", "0")) > 0:
@@ -125,20 +126,66 @@ def latest_checkpoint(out_dir: str | Path) -> Path | None:
     return found[-1] if found else None
 
 
-def load_latest_checkpoint(out_dir: str | Path, model_cfg) -> tuple[Path, dict]:
-    """(path, checkpoint) of the newest readable step checkpoint; an unreadable newer one (cut
-    by a crash or a full disk) is skipped with a warning. `UserError` if none is readable."""
-    found = sorted(checkpoint_dir(out_dir).glob("step_*.pt"), reverse=True)
+def load_latest_checkpoint(out_dir: str | Path, model_cfg, set_aside: bool = True
+                           ) -> tuple[Path, dict]:
+    """(path, checkpoint) of the newest readable step checkpoint, else of a readable `last.pt`.
+
+    An unreadable one (cut by a crash or a full disk) is skipped with a warning and, with
+    `set_aside`, renamed to `*.pt.bad`, so that pruning never keeps it in place of the good ones
+    (it would sort as the newest). `UserError` if none is readable.
+    """
+    folder = checkpoint_dir(out_dir)
+    found = sorted(folder.glob("step_*.pt"), reverse=True)
+    found += [folder / "last.pt"] if (folder / "last.pt").is_file() else []
     if not found:
-        raise UserError(f"--resume: no checkpoint in {checkpoint_dir(out_dir)}; start "
-                        "without --resume, or set train.out_dir to the run to continue")
+        raise UserError(f"--resume: no checkpoint in {folder}; start without --resume, or set "
+                        "train.out_dir to the run to continue")
     for path in found:
         try:
             return path, load_checkpoint(path, model_cfg)
         except CheckpointUnreadable as exc:
-            log.warning("warning: skipping %s: %s", path.name, exc)
-    raise UserError(f"--resume: no readable checkpoint in {checkpoint_dir(out_dir)} (see the "
-                    "warnings above); start a new run in another train.out_dir")
+            if not set_aside:
+                continue
+            bad = path.with_name(path.name + ".bad")
+            try:
+                os.replace(path, bad)
+            except OSError as err:
+                raise disk_error(bad, err) from err
+            log.warning("warning: skipping %s (renamed to %s): %s", path.name, bad.name, exc)
+    raise UserError(f"--resume: no readable checkpoint in {folder} (see the warnings above); run "
+                    "again without --resume to start over, or in another train.out_dir")
+
+
+def remove_temporaries(folder: Path) -> None:
+    """Delete the temporary files that a killed writer left in `folder` (`.NAME.tmp<pid>.EXT` of
+    `c4d_core.files.atomic_path`, `.last.pt.tmp` of `alias_last`), with a log line each."""
+    for path in sorted(folder.glob(".*.tmp*")):
+        if path.is_file() and re.fullmatch(r"\..+\.tmp\d*(\.\w+)?", path.name):
+            log.info("removing %s, left by an interrupted write", path)
+            path.unlink(missing_ok=True)
+
+
+def repair_log(log_path: Path, step: int) -> None:
+    """Drop the lines of the JSON-lines log `log_path` after `step` (written after the last
+    checkpoint, before a crash) and a torn last line (a crash or a full disk inside the append);
+    rewritten atomically. A broken line elsewhere is a `UserError` (the file was edited)."""
+    if not log_path.exists():
+        return
+    text = log_path.read_text(errors="replace")
+    lines, kept = text.splitlines(), []
+    for number, line in enumerate(lines, 1):
+        try:
+            record = json.loads(line)
+        except ValueError:
+            if number < len(lines):
+                raise UserError(f"{log_path} line {number} is not JSON (edited by hand?); "
+                                "fix or delete that line, then resume") from None
+            log.warning("warning: dropping the torn last line of %s", log_path)
+            continue
+        if record["step"] <= step:
+            kept.append(line)
+    if len(kept) != len(lines) or (text and not text.endswith("\n")):
+        write_text(log_path, "".join(line + "\n" for line in kept))
 
 
 def rebuild_annealing(scheduler, total_steps: int) -> None:
@@ -250,7 +297,8 @@ class Trainer:
         self.optimizer = torch.optim.AdamW(groups, lr=tc.lr, weight_decay=tc.weight_decay,
                                            eps=tc.adam_eps)
         self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
-            # warm-up of at least 2 steps: OneCycleLR divides by zero on a shorter phase
+            # warm-up of at least 2 steps: OneCycleLR divides by zero on a shorter phase (and
+            # the schema's train.steps >= 3 leaves an annealing phase)
             self.optimizer, max_lr=[g["lr"] for g in groups], total_steps=tc.steps,
             pct_start=max(tc.pct_start, 2.0 / tc.steps),
             anneal_strategy="cos", cycle_momentum=False, div_factor=tc.div_factor,
@@ -259,13 +307,15 @@ class Trainer:
         self.step, self.best = 0, None
         self.data_counts: dict[int, tuple[int, int]] = {}  # loader split -> (read, bad)
         start_positions: dict = {}
+        if self.main:
+            remove_temporaries(checkpoint_dir(self.out_dir))
         if resume:
             start_positions = self._resume()
         elif latest_checkpoint(self.out_dir) is not None:
             raise UserError(f"{self.out_dir} already holds checkpoints; add --resume to continue "
                             "that run, or set train.out_dir=... to a new folder")
         elif self.main:
-            self._truncate_log(0)  # lines of a run that crashed before its first checkpoint
+            repair_log(self.out_dir / "log.jsonl", 0)  # lines of a run that crashed before its first checkpoint
         self.ddp = (DistributedDataParallel(self.model, device_ids=ddp_device_ids(self.device))
                     if self.world_size > 1 else self.model)
         sources = list(cfg.data.sources)
@@ -289,7 +339,14 @@ class Trainer:
     # -- resume --
 
     def _resume(self) -> dict:
-        path, ckpt = load_latest_checkpoint(self.out_dir, self.cfg.model)
+        # rank 0 first: it sets unreadable checkpoints aside, the others then find the same one
+        if self.world_size > 1 and not self.main:
+            dist.barrier()
+        try:
+            path, ckpt = load_latest_checkpoint(self.out_dir, self.cfg.model, set_aside=self.main)
+        finally:
+            if self.world_size > 1 and self.main:
+                dist.barrier()
         extra = ckpt["extra"]
         self.model.load_state_dict(ckpt["model"])
         self.optimizer.load_state_dict(extra["optimizer"])
@@ -306,31 +363,9 @@ class Trainer:
         set_rng_state(extra["rng"][min(self.rank, len(extra["rng"]) - 1)])
         log.info("resumed %s at step %d", path, self.step)
         if self.main:
-            self._truncate_log(self.step)
+            repair_log(self.out_dir / "log.jsonl", self.step)
         num_splits = self.world_size * max(self.cfg.data.num_workers, 1)
         return merge_positions(extra["data"], num_splits)
-
-    def _truncate_log(self, step: int) -> None:
-        """Drop log lines after `step` (written after the checkpoint, before a crash) and a torn
-        last line (a crash or a full disk inside the append); rewritten atomically."""
-        log_path = self.out_dir / "log.jsonl"
-        if not log_path.exists():
-            return
-        text = log_path.read_text(errors="replace")
-        lines, kept = text.splitlines(), []
-        for number, line in enumerate(lines, 1):
-            try:
-                record = json.loads(line)
-            except ValueError:
-                if number < len(lines):
-                    raise UserError(f"{log_path} line {number} is not JSON (edited by hand?); "
-                                    "fix or delete that line, then resume") from None
-                log.warning("warning: dropping the torn last line of %s", log_path)
-                continue
-            if record["step"] <= step:
-                kept.append(line)
-        if len(kept) != len(lines) or (text and not text.endswith("\n")):
-            write_text(log_path, "".join(line + "\n" for line in kept))
 
     # -- checkpoints --
 
