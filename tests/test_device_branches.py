@@ -165,6 +165,26 @@ def test_out_of_memory_halves_the_batch(monkeypatch):
         source.pointmaps(frames, edges)
 
 
+def test_pointmaps_pin_the_frames_for_a_gpu(monkeypatch):
+    """The pinning branch (a CUDA device pins the frame tensor before the pair batches copy from
+    it), with pinning faked: the pinned tensor is the one the batches read; same pointmaps."""
+    torch.manual_seed(0)
+    source = Dust3rPointmaps(Dust3rNet(TINY_NET), device="cpu", batch_size=2)
+    frames = np.random.default_rng(2).integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)
+    edges = np.array([[0, 1], [1, 2], [2, 0]])
+    expected = source.pointmaps(frames, edges)
+    asked, pinned, read = [], [], []
+    monkeypatch.setattr("c4d_pipeline.dust3r_pointmaps.pin_memory", lambda kind: asked.append(kind) or True)
+    monkeypatch.setattr(torch.Tensor, "pin_memory", lambda self: pinned.append(self) or self)
+    run = source._run
+    monkeypatch.setattr(source, "_run", lambda images, i, j: read.append(images) or run(images, i, j))
+    got = source.pointmaps(frames, edges)
+    assert asked == ["cpu"] and len(pinned) == 1 and pinned[0].shape == (3, 3, 32, 32)
+    assert len(read) == 2 and all(images is pinned[0] for images in read)
+    for key in ("pts_i", "pts_j", "conf_i", "conf_j"):
+        np.testing.assert_array_equal(getattr(got, key), getattr(expected, key))
+
+
 def test_checkpoint_rng_state_keeps_the_cuda_generators(monkeypatch):
     """rng_state / set_rng_state with CUDA faked: the GPU generators' states go round the trip."""
     gpu_states = [torch.arange(4, dtype=torch.uint8), torch.arange(4, 8, dtype=torch.uint8)]
