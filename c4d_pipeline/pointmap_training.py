@@ -16,7 +16,10 @@ their own mean distance to the origin over the pair's pixels; per pixel
 
 Files in `train.out_dir`: `config.yaml`, `last.pt` (training state, for --resume),
 `log.jsonl` (one line per logged step) and `pointmap_net.pth`, the official-layout file:
-`{'model': state_dict, 'args': Namespace(model="AsymmetricCroCo3DStereo(...)")}`.
+`{'model': state_dict, 'args': Namespace(model="AsymmetricCroCo3DStereo(...)")}`. A run repairs
+what a crash leaves, as `c4d train` does: temporaries of a killed write are deleted, log lines
+past the checkpoint it starts from (and a torn last line) dropped; a damaged `last.pt` is a
+one-line error.
 """
 
 from __future__ import annotations
@@ -36,9 +39,10 @@ from c4d_core.config import to_dict
 from c4d_core.errors import UserError
 from c4d_core.files import append_line, write_text
 from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
-from c4d_pipeline.pointmaps import GroundTruthPointmaps
+from c4d_pipeline.ground_truth import GroundTruthPointmaps
 from datagen.shards import read_scenes
-from dynpt.checkpoint import save_atomic
+from dynpt.checkpoint import read_tensor_file, save_atomic
+from dynpt.train import remove_temporaries, repair_log
 
 log = logging.getLogger(__name__)
 
@@ -181,13 +185,17 @@ def train_pointmap_net(cfg, resume: bool = False) -> dict:
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: min(1.0, (s + 1) / warmup)
                                                  * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps)))
     step, rng = 0, np.random.default_rng(int(cfg.seed))
+    remove_temporaries(out)
     if resume and state_path.exists():
-        state = torch.load(state_path, map_location="cpu", weights_only=False)
+        state = read_tensor_file(state_path, "pointmap training", "run without --resume",
+                                 "it cannot be resumed: delete it, then run the same command "
+                                 "without --resume to start over")
         net.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         schedule.load_state_dict(state["schedule"])
         step, rng.bit_generator.state = state["step"], state["rng"]
         log.info("resumed pointmap training at step %d", step)
+    repair_log(out / "log.jsonl", step)  # lines past the checkpoint, a torn last line
     net.train()
     started, recent = time.time(), []
     stop = min(steps, step + int(cfg.train.stop_after)) if int(cfg.train.stop_after) > 0 else steps

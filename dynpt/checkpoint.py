@@ -15,8 +15,6 @@ from __future__ import annotations
 import errno
 import logging
 import os
-import pickle
-import re
 from pathlib import Path
 from typing import Mapping
 
@@ -25,25 +23,16 @@ from torch import nn
 
 from c4d_core.errors import UserError
 from c4d_core.files import atomic_path, disk_error
+from dynpt.dust3r_checkpoint import load_failure, require_file
 from dynpt.model import DynPT, build_model, plain_config
 
 log = logging.getLogger(__name__)
 
 FORMAT = "dynpt-checkpoint-v1"
-_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
 
 
 class CheckpointUnreadable(UserError):
     """The file exists but cannot be read as a checkpoint (truncated, damaged, another format)."""
-
-
-def _reason(exc: Exception) -> str:
-    """A short reason for a failed `torch.load`, without PyTorch's advice to re-run it with
-    weights_only=False (unsafe for a file of unknown origin) or terminal colour codes."""
-    if isinstance(exc, pickle.UnpicklingError) and "weights_only" in str(exc):
-        return "it holds Python objects other than tensors and plain values"
-    first = _ANSI.sub("", str(exc)).strip().splitlines()[0] if str(exc).strip() else ""
-    return first[:200] or type(exc).__name__
 
 
 def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dict | None = None) -> Path:
@@ -73,13 +62,14 @@ def save_atomic(path: str | os.PathLike, payload) -> Path:
 
 def read_tensor_file(path: Path, kind: str, missing_hint: str, damaged_hint: str):
     """`torch.load(path, weights_only=True)` on the CPU; a missing or unreadable file is a one-line
-    `UserError` ("<kind> checkpoint ... does not exist; <missing_hint>" / "...; <damaged_hint>")."""
-    if not path.is_file():
-        raise UserError(f"{kind} checkpoint {str(path)!r} does not exist; {missing_hint}")
+    `UserError` ("<kind> checkpoint ... does not exist; <missing_hint>" / "...; <damaged_hint>");
+    a folder is named as one."""
+    require_file(path, f"{kind} checkpoint", missing_hint)
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
-        raise UserError(f"cannot read {str(path)!r} as a {kind} checkpoint ({_reason(exc)}); {damaged_hint}") from exc
+        raise UserError(f"cannot read {str(path)!r} as a {kind} checkpoint "
+                        f"({load_failure(exc, path)}); {damaged_hint}") from exc
 
 
 def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -> dict:
@@ -89,20 +79,12 @@ def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -
     architecture difference from the stored config is a `UserError` naming the keys.
     """
     path = Path(path)
-    if path.is_dir():
-        inside = sorted(p.name for p in path.glob("*.pt")) or sorted(
-            str(p.relative_to(path)) for p in path.glob("checkpoints/*.pt"))
-        hint = f" (it holds {', '.join(inside[:3])})" if inside else ""
-        raise UserError(f"checkpoint {str(path)!r} is a folder, not a file{hint}; pass the path "
-                        "of a checkpoint file, e.g. RUN/checkpoints/best.pt")
-    if not path.is_file():
-        raise UserError(f"checkpoint {str(path)!r} does not exist; pass the path of a DynPT "
-                        "checkpoint written by `c4d train`")
+    require_file(path, "checkpoint", "pass the path of a DynPT checkpoint written by `c4d train`")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
         raise CheckpointUnreadable(f"cannot read {str(path)!r} as a DynPT checkpoint "
-                                   f"({_reason(exc)}); it is truncated or not a file written by "
+                                   f"({load_failure(exc, path)}); pass a checkpoint written by "
                                    "`c4d train`") from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         found = ckpt.get("format", "no format tag") if isinstance(ckpt, dict) else type(ckpt).__name__

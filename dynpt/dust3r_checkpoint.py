@@ -12,15 +12,20 @@ mode. `read_checkpoint` first tries `torch.load(weights_only=True)` with `argpar
 only if the file holds other Python objects (older training checkpoints) does it fall back to the
 full unpickler (`weights_only=False`, which can run code stored in the file). The project only ever
 loads files the user names on the command line, never downloads any.
+
+`require_file` and `load_failure` are shared by every checkpoint reader (DynPT, CoTracker3, RAFT,
+DUSt3R): a folder or a missing path named as such, and why `torch.load` failed in a few words.
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import errno
 import logging
 import math
 import pickle
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -96,12 +101,54 @@ def parse_constructor(text: str) -> tuple[str, dict[str, Any]]:
     return call.func.id, kwargs
 
 
+def require_file(path: Path, what: str, missing_hint: str) -> None:
+    """`UserError` unless `path` is a file: a folder is named as one (with the checkpoint files
+    in it or one level down), a missing path says so and adds `missing_hint`."""
+    if path.is_dir():
+        inside = [str(p.relative_to(path)) for pattern in ("*.pt", "*.pth", "*/*.pt", "*/*.pth")
+                  for p in sorted(path.glob(pattern))]
+        held = f" (it holds {', '.join(inside[:3])})" if inside else ""
+        raise UserError(f"{what} {str(path)!r} is a folder, not a file{held}; pass the checkpoint "
+                        "file inside it")
+    if not path.is_file():
+        raise UserError(f"{what} {str(path)!r} does not exist; {missing_hint}")
+
+
+def holds_objects(exc: Exception) -> bool:
+    """Whether a tensor-only `torch.load` failed on a Python object it may not build (a pickled
+    class), rather than on bytes that are no pickle at all."""
+    return isinstance(exc, pickle.UnpicklingError) and bool(
+        re.search(r"Unsupported global|GLOBAL ", str(exc)))
+
+
+def load_failure(exc: Exception, path: Path) -> str:
+    """Why `torch.load(path, weights_only=True)` failed, in a few words. PyTorch's own text is never
+    passed on: it advises loading with weights_only=False (unsafe for a file of unknown origin),
+    carries terminal colour codes, and says "weights_only" even for random bytes."""
+    if holds_objects(exc):
+        found = re.search(r"GLOBAL ([\w.]+)", str(exc))
+        return ("it holds Python objects other than tensors and plain values"
+                + (f" ({found[1]})" if found else ""))
+    if isinstance(exc, OSError) and exc.errno not in (None, errno.EINVAL) and exc.strerror:
+        return exc.strerror  # the file itself cannot be read (permissions, I/O error)
+    try:
+        size = f"{path.stat().st_size} bytes"
+    except OSError:
+        size = "size unknown"
+    # zip or pickle errors, EOF, EINVAL (a zip cut inside a record), miniz's "failed finding
+    # central directory", an unknown pickle opcode: all a file cut short or of another kind
+    return f"not a PyTorch file, or truncated ({size})"
+
+
 def _torch_load(path: Path, map_location: Any) -> Any:
-    """`torch.load` in tensor-only mode with argparse.Namespace allowed; full unpickling as fallback."""
+    """`torch.load` in tensor-only mode with argparse.Namespace allowed; full unpickling as fallback
+    when the file holds other Python objects (not for bytes that are no pickle at all)."""
     try:
         with torch.serialization.safe_globals([argparse.Namespace]):
             return torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError:
+    except pickle.UnpicklingError as exc:
+        if not holds_objects(exc):
+            raise
         log.warning("%s holds Python objects beyond tensors and argparse.Namespace; loading it with "
                     "the full unpickler because you named this file", path)
         return torch.load(path, map_location=map_location, weights_only=False)
@@ -123,15 +170,13 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> OfficialChec
     string cannot be parsed safely.
     """
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"checkpoint file {str(path)!r} does not exist; pass the path of a downloaded "
-                        "DUSt3R/MASt3R/MonST3R .pth file")
+    require_file(path, "checkpoint file", "pass the path of a downloaded DUSt3R/MASt3R/MonST3R "
+                 ".pth file")
     try:
         ckpt = _torch_load(path, map_location)
-    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError, ValueError) as exc:
-        raise UserError(f"cannot read checkpoint {str(path)!r} ({type(exc).__name__}: "
-                        f"{str(exc).splitlines()[0] if str(exc) else 'truncated?'}); download it "
-                        "again or pass another file") from exc
+    except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
+        raise UserError(f"cannot read checkpoint {str(path)!r} ({load_failure(exc, path)}); "
+                        "download it again or pass another file") from exc
     if not isinstance(ckpt, dict):
         raise UserError(f"{str(path)!r} is not a checkpoint (a dict with 'model' and 'args'); pass an "
                         "official DUSt3R/MASt3R/MonST3R .pth file")
