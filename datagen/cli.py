@@ -19,8 +19,11 @@ import json
 import logging
 import multiprocessing
 import os
+import signal
+import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from itertools import islice
@@ -158,6 +161,36 @@ def claim_directory(out: Path, record: dict[str, Any], plan: ShardPlan) -> None:
 
 _worker: dict[str, Any] = {}
 
+# Set by Ctrl-C (SIGINT) during a run. Python raises KeyboardInterrupt wherever the main thread
+# happens to be, and where that is a finaliser (`__del__`, a weakref callback of the pool) the
+# exception is printed and dropped: the run then went on to the end with exit 0. The flag keeps
+# the interrupt, and the loops below check it between scenes and while waiting for a worker.
+_interrupted = threading.Event()
+
+
+@contextmanager
+def _interrupt_flag() -> Iterator[None]:
+    """While inside: SIGINT sets `_interrupted` and raises KeyboardInterrupt (main thread only)."""
+    _interrupted.clear()
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_sigint(signum, frame):
+        _interrupted.set()
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _check_interrupt() -> None:
+    if _interrupted.is_set():
+        raise KeyboardInterrupt
+
 
 def _exit_with_parent(parent: int) -> None:
     """Watch (in a daemon thread) for the parent process to die, then end this worker at once:
@@ -217,7 +250,13 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
         pending = deque(pool.submit(_worker_sample, i) for i in islice(todo, 2 * workers))
         try:
             while pending:
-                sample = pending.popleft().result()
+                future = pending.popleft()
+                while True:  # wait in slices, so an interrupt lost in a finaliser still ends it
+                    try:
+                        sample = future.result(timeout=0.5)
+                        break
+                    except TimeoutError:
+                        _check_interrupt()
                 following = next(todo, None)
                 if following is not None:
                     pending.append(pool.submit(_worker_sample, following))
@@ -262,13 +301,25 @@ def run(args: argparse.Namespace) -> int:
              task, len(indices), len(todo), args.out, len(shards) - len(todo), workers)
 
     start = time.perf_counter()
-    samples = generate_samples(cfg, indices, workers)
+    with _interrupt_flag():
+        _write_shards(args.out, plan, todo, generate_samples(cfg, indices, workers), workers,
+                      len(indices))
+    seconds = time.perf_counter() - start
+    log.info("wrote %d scenes in %d shards to %s in %.0f s (%.2f scenes/s)",
+             len(indices), len(todo), args.out, seconds, len(indices) / seconds)
+    return 0
+
+
+def _write_shards(out: Path, plan: ShardPlan, todo: list[int], samples: Iterator[dict[str, Any]],
+                  workers: int, total: int) -> None:
+    """Write the scenes `samples` yields into the shards `todo` of `plan` in `out`, in order."""
     try:
-        with tqdm(total=len(indices), unit="scene", desc="datagen", dynamic_ncols=True) as bar:
+        with tqdm(total=total, unit="scene", desc="datagen", dynamic_ncols=True) as bar:
             for shard in todo:
-                with ShardWriter(args.out / plan.shard_name(shard)) as writer:
+                with ShardWriter(out / plan.shard_name(shard)) as writer:
                     for index in plan.scenes_of(shard):
                         sample = next(samples)
+                        _check_interrupt()
                         assert sample["__key__"] == scene_key(plan.split, index), "out of order"
                         writer.write(sample)
                         bar.update()
@@ -280,7 +331,3 @@ def run(args: argparse.Namespace) -> int:
         raise
     finally:
         samples.close()  # on an error or Ctrl-C: cancel queued scenes, shut the workers down
-    seconds = time.perf_counter() - start
-    log.info("wrote %d scenes in %d shards to %s in %.0f s (%.2f scenes/s)",
-             len(indices), len(todo), args.out, seconds, len(indices) / seconds)
-    return 0

@@ -186,3 +186,24 @@ def test_resolution_forms():
     assert parse_resolution("256") == [256, 256]
     assert parse_resolution("384x512") == [384, 512]
     assert parse_resolution("384X512") == [384, 512]
+
+
+def test_ctrl_c_dropped_by_a_finaliser_still_stops_the_run():
+    """A KeyboardInterrupt raised inside `__del__` is printed and dropped by Python; the run must
+    still stop at its next check (it once went on to write every shard and exit 0)."""
+    import gc
+    import signal
+
+    from datagen import cli as datagen_cli
+
+    class SignalsWhenCollected:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)  # the handler runs here, inside the finaliser
+
+    with datagen_cli._interrupt_flag():
+        datagen_cli._check_interrupt()  # nothing pending yet
+        SignalsWhenCollected()  # collected at once: the KeyboardInterrupt is dropped
+        gc.collect()
+        with pytest.raises(KeyboardInterrupt):
+            datagen_cli._check_interrupt()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
