@@ -11,13 +11,17 @@ and the flow-only baseline (ego-flow from per-frame geometry, normalised error).
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.motion_mask import correspondence_motion_masks, ego_flow, flow_only_motion_masks, oracle_tracks
-from c4d_pipeline.synthetic import make_box_scene
 from timing import median_seconds
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes
+from tests.synthetic_scenes import make_box_scene  # noqa: E402
 
 
 

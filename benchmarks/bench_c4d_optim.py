@@ -1,7 +1,7 @@
 """Speed and peak memory of the C4D optimisation (init, stage 1 GA+CMA+CTS, stage 2 PTS) on this CPU.
 
 Every case runs in its own subprocess (peak RSS is per process) on an analytic box scene with
-ground-truth pointmaps and flow (`c4d_pipeline.synthetic`), the default scene graph (offsets
+ground-truth pointmaps and flow (`tests/synthetic_scenes.py`), the default scene graph (offsets
 1,3,5,7,9, symmetric) and the default config. Per stage it times `--iters` iterations and reports
 the median seconds per iteration and that median x 300 (the paper's 300 iterations per stage:
 EXTRAPOLATED from the measured iterations, labelled as such).
@@ -24,9 +24,12 @@ import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Callable
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes
 
 
 def one_case(frames: int, height: int, width: int, iters: int, threads: int, overrides: list[str]) -> dict:
@@ -39,7 +42,7 @@ def one_case(frames: int, height: int, width: int, iters: int, threads: int, ove
     from c4d_pipeline.optimize import optimise
     from c4d_pipeline.pointmaps import GroundTruthPointmaps
     from c4d_pipeline.scene_graph import graph_from_config
-    from c4d_pipeline.synthetic import make_box_scene
+    from tests.synthetic_scenes import make_box_scene
 
     torch.set_num_threads(threads)
     start = time.perf_counter()
@@ -106,7 +109,7 @@ def baseline_case(variant: str, iters: int, threads: int) -> dict:
     from c4d_pipeline.optimize import Stage1, rescale_world
     from c4d_pipeline.pointmaps import GroundTruthPointmaps
     from c4d_pipeline.scene_graph import graph_from_config
-    from c4d_pipeline.synthetic import make_box_scene
+    from tests.synthetic_scenes import make_box_scene
 
     torch.set_num_threads(threads)
     frames, size = 16, 64

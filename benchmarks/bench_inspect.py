@@ -5,7 +5,7 @@
 1. Statistics pass: seconds per scene to read a shard set decoding every field (the baseline of
    the ratio) versus only the fields the statistics need (`STATISTICS_FIELDS`), as
    `build_dataset_report` does for all scenes after the samples. Scenes are the analytic box
-   scenes of c4d_pipeline.synthetic written with datagen's shard writer.
+   scenes of tests/synthetic_scenes.py written with datagen's shard writer.
 2. Point splatter: seconds per rendered view of `render_points` (z-buffer, 3x3 splats) for M
    points into a 256x341 image, against projecting the same points alone (the baseline).
 Prints markdown tables of medians over `--repeats` runs.
@@ -14,6 +14,7 @@ Prints markdown tables of medians over `--repeats` runs.
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from pathlib import Path
 
@@ -21,9 +22,11 @@ import numpy as np
 
 from c4d.inspect import dataset_report, point_render
 from c4d_core import geometry
-from c4d_pipeline.synthetic import make_box_scene
 from datagen import shards
 from timing import median_seconds
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes
+from tests.synthetic_scenes import make_box_scene  # noqa: E402
 
 
 

@@ -18,7 +18,7 @@ Sections, each through the project's own builders (configs, `dynpt.train.Trainer
    `pointmaps.precision=bf16`: seconds per pair at batch 1 and at the batch it picks from free
    memory, peak memory;
 5. C4D stage 1 (GA + CMA + CTS) seconds per iteration (median) at 24 and 90 frames, 512x288,
-   ground-truth pointmaps and flow of an analytic box scene (`c4d_pipeline.synthetic`).
+   ground-truth pointmaps and flow of an analytic box scene (`tests/synthetic_scenes.py`).
 
 A section that fails puts its one-line error in the table and the run goes on; the exit status
 is then 1. `--cpu` hides any GPU and shrinks every size (CI runs it: tests/test_device_check.py).
@@ -32,6 +32,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes
 
 ROWS: list[tuple[str, str, str, str]] = []  # (check, setting, result, peak memory)
 
@@ -235,7 +237,7 @@ _SCENE = None  # the box scene of a C4D input worker (built once per worker, det
 
 def _c4d_worker_init(frames: int, height: int, width: int) -> None:
     global _SCENE
-    from c4d_pipeline.synthetic import make_box_scene
+    from tests.synthetic_scenes import make_box_scene
 
     _SCENE = make_box_scene(frames, height, width, num_tracks=256, seed=0)
 

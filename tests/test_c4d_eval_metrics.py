@@ -192,7 +192,7 @@ def test_pose_metrics_equal_evo_on_an_optimiser_trajectory():
     from c4d_pipeline.optimize import optimise
     from c4d_pipeline.pointmaps import GroundTruthPointmaps
     from c4d_pipeline.scene_graph import strided_window_pairs
-    from c4d_pipeline.synthetic import make_box_scene
+    from tests.synthetic_scenes import make_box_scene
 
     scene = make_box_scene(num_frames=8, height=24, width=32, num_tracks=0, seed=2)
     edges = strided_window_pairs(8, window=3, stride=2)

@@ -9,7 +9,7 @@ import pytest
 from c4d.cli import main
 from c4d_pipeline.motion_mask import ground_truth_motion_masks
 from c4d_pipeline.outputs import Reconstruction, write_reconstruction
-from c4d_pipeline.synthetic import make_box_scene
+from tests.synthetic_scenes import make_box_scene
 from datagen.shards import ShardWriter, encode_scene, scene_key
 
 USED = [0, 2, 3, 5]  # the reconstruction skips frames 1 and 4

@@ -7,7 +7,7 @@ import pytest
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
 from c4d_pipeline.flow import build_flow, resize_nearest
-from c4d_pipeline.synthetic import make_box_scene
+from tests.synthetic_scenes import make_box_scene
 from datagen.generate import generate_scene
 
 

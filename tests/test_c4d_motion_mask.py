@@ -23,7 +23,7 @@ from c4d_pipeline.motion_mask import (
 )
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from c4d_pipeline.scene_graph import strided_window_pairs
-from c4d_pipeline.synthetic import make_box_scene
+from tests.synthetic_scenes import make_box_scene
 
 MOVING_BOX = 3  # make_box_scene's sliding box is its third object
 

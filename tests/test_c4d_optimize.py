@@ -16,7 +16,7 @@ from c4d_pipeline.motion_mask import ground_truth_motion_masks, oracle_tracks
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from c4d_pipeline.scene_graph import graph_from_config, strided_window_pairs
 from c4d_pipeline.scene_params import SceneParams
-from c4d_pipeline.synthetic import make_box_scene
+from tests.synthetic_scenes import make_box_scene
 
 T, H, W = 8, 24, 32
 

@@ -14,7 +14,7 @@ from c4d_pipeline.outputs import (Reconstruction, read_ply, read_reconstruction,
 from c4d_core import geometry
 from c4d_pipeline.pipeline import lift_tracks, reconstruct
 from c4d_pipeline.pointmaps import GroundTruthPointmaps
-from c4d_pipeline.synthetic import make_box_scene
+from tests.synthetic_scenes import make_box_scene
 
 
 

@@ -6,7 +6,7 @@ import pytest
 from c4d_core import geometry
 from c4d_core.errors import UserError
 from c4d_pipeline.pointmaps import GroundTruthPointmaps, PairwisePointmaps, PointmapSource, sanitize
-from c4d_pipeline.synthetic import make_box_scene
+from tests.synthetic_scenes import make_box_scene
 
 
 @pytest.fixture(scope="module")

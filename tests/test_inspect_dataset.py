@@ -14,7 +14,7 @@ from c4d.cli import main
 from c4d.inspect import dataset_report
 from c4d_core.config import load_config
 from c4d_core.video import read_video_frames
-from c4d_pipeline.synthetic import make_box_scene
+from tests.synthetic_scenes import make_box_scene
 from datagen import shards
 
 T, H, W, N = 8, 48, 64, 48

@@ -3,6 +3,8 @@
 `make_box_scene` returns a full `datagen.Scene` (depth, segmentation, flow, cameras, object poses,
 tracks with occlusion and mobility labels) in well under a second at small sizes, so the
 reconstruction can be tested and benchmarked where the truth is known, independent of the renderer.
+Imported as `tests.synthetic_scenes` by the tests and the benchmarks (which put the repository root
+on sys.path); no module of the project uses it.
 """
 
 from __future__ import annotations
