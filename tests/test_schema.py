@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from c4d.cli import main
-from c4d_core.config import config_dir, load_config, section_defaults, to_dict
+from c4d_core.config import config_dir, load_config, section_defaults, to_dict, to_yaml
 from c4d_core.errors import UserError
 from c4d_core.schema import ROOTS, RULES, leaf_keys, validate
 from c4d_pipeline.motion_mask import MotionMaskConfig
@@ -68,6 +68,11 @@ def test_review_findings_of_the_motion_mask_section():
     ("dynpt", "data.num_frames=0", "`data.num_frames` = 0"),
     ("dynpt", "data.num_frames=1", "`data.num_frames` = 1 is out of range: it must be an integer >= 2"),
     ("dynpt", "data.crop_size=[100000,100000]", "`data.crop_size` = [100000, 100000]"),
+    # the tracker's floor: 16 px crops ended in a torch ValueError after the run folder was made
+    ("dynpt", "data.crop_size=[16,16]", "`data.crop_size` = [16, 16] is out of range: it must be a list of 2 integers in [17, 4096]"),
+    ("dynpt", "model.resolution=[16,64]", "`model.resolution` = [16, 64]"),
+    ("dynpt", "eval.resolution=[64,16]", "`eval.resolution` = [64, 16]"),
+    ("dynpt", "train.steps=2", "`train.steps` = 2 is out of range: it must be an integer >= 3"),
     ("dynpt", "data.augment.hflip_prob=1.5", "in [0, 1]"),
     ("dynpt", "data.weights=[1.0]", "one entry per `data.sources`"),
     ("dynpt", "model.hidden_dim=33", "multiple of `model.num_heads`"),
@@ -75,8 +80,12 @@ def test_review_findings_of_the_motion_mask_section():
     ("c4d", "motion_mask.c4d.sampson_threshold_px=-1", "`motion_mask.c4d.sampson_threshold_px` = -1"),
     ("c4d", "optim.betas=[0.9]", "a list of 2 numbers"),
     ("c4d", "video.stride=0", "`video.stride` = 0"),
+    ("c4d", "video.max_frames=1", "`video.max_frames` = 1 is out of range: it must be 0 or an integer >= 2"),
+    ("c4d", "video.max_frames=-1", "`video.max_frames` = -1"),
+    ("c4d", "pointmaps.size=100000", "`pointmaps.size` = 100000 is out of range: it must be an integer in [0, 4096]"),
     ("demo", "recon.num_scenes=100", "must be <= `data.val_scenes`"),
     ("demo", "data.frames=1", "`data.frames` = 1"),
+    ("demo", "train.steps=2", "`train.steps` = 2"),
     ("inspect", "samples=-1", "`samples` = -1"),
     ("pointmaps", "train.batch_size=0", "`train.batch_size` = 0"),
 ])
@@ -84,6 +93,17 @@ def test_out_of_range_values_are_one_line_errors(group, override, message):
     with pytest.raises(UserError) as error:
         load_config(group, ROOTS[group], overrides=[override])
     assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_the_tracker_floor_is_dynpts_own_and_zero_stays_valid_where_it_means_all():
+    from c4d_core.schema import TRACKER_MIN_SIDE
+    from dynpt.inference import MIN_SIDE
+
+    assert TRACKER_MIN_SIDE == MIN_SIDE
+    for override in ("data.crop_size=[17,17]", "model.resolution=[17,4096]", "model.resolution=null"):
+        load_config("dynpt", "tiny-cpu", overrides=[override])
+    cfg = load_config("c4d", "default", overrides=["video.max_frames=0", "pointmaps.size=0"])
+    assert cfg.video.max_frames == 0 and cfg.pointmaps.size == 0
 
 
 def test_nan_and_wrong_list_items_are_refused():
@@ -102,6 +122,10 @@ def test_nan_and_wrong_list_items_are_refused():
     (["train", "--config", "tiny-cpu", "train.batch_size=0"], "`train.batch_size` = 0"),
     (["train", "--config", "tiny-cpu", "data.num_frames=1"], "`data.num_frames` = 1"),
     (["train", "--config", "tiny-cpu", "data.crop_size=[100000,100000]"], "`data.crop_size`"),
+    (["train", "--config", "tiny-cpu", "data.crop_size=[16,16]"], "`data.crop_size` = [16, 16]"),
+    (["train", "--config", "tiny-cpu", "train.steps=2"], "`train.steps` = 2"),
+    (["train", "--resume"], "to resume (no config.yaml there); start one with --config"),
+    (["train"], "give --config"),
     (["pretrain-pointmaps", "train.batch_size=0"], "`train.batch_size` = 0"),
     (["demo", "--quick", "data.frames=1"], "`data.frames` = 1"),
 ])
@@ -113,6 +137,19 @@ def test_commands_refuse_bad_values_before_writing_anything(argv, message, tmp_p
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_resume_needs_only_the_run_folder(tmp_path, capsys):
+    """`c4d train --resume train.out_dir=DIR` without --config (argparse required it) reads
+    DIR/config.yaml: its data.sources get training as far as the missing checkpoint, where the
+    root preset's empty sources would have stopped it with "no training data"."""
+    run = tmp_path / "run"
+    run.mkdir()
+    saved = load_config("dynpt", "tiny-cpu", overrides=["data.sources=[shards/of-the-run]", f"train.out_dir={run}"])
+    (run / "config.yaml").write_text(to_yaml(saved))
+    assert main(["train", "--resume", f"train.out_dir={run}"]) == 2
+    err = capsys.readouterr().err
+    assert "--resume: no checkpoint in" in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_config_show_prints_what_runs(capsys, tmp_path):
@@ -145,11 +182,15 @@ PLACEHOLDERS = {"key.sub", "a.b", "this.style.width"}  # the last: JavaScript in
 OVERRIDE = re.compile(r"(?<![\w.\-/$])([a-z][a-z0-9_]*(?:\.[a-z0-9_]+)+)=(?!=)")
 
 
-def _documented_keys():
+def _documenting_files():
     files = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md")), *sorted((REPO / "configs").rglob("*.yaml"))]
     for package in ("c4d", "datagen", "dynpt", "c4d_pipeline", "benchmarks"):
         files += sorted((REPO / package).rglob("*.py"))
-    for path in files:
+    return files
+
+
+def _documented_keys():
+    for path in _documenting_files():
         for key in OVERRIDE.findall(path.read_text()):
             if key not in PLACEHOLDERS:
                 yield path.relative_to(REPO), key
@@ -163,3 +204,43 @@ def test_docs_and_code_name_only_real_keys():
     found = list(_documented_keys())
     assert len(found) > 50  # the pattern finds the overrides
     assert [f"{path}: {key}" for path, key in found if key not in known] == []
+
+
+# the config group each command's key=value overrides set (None: the command takes none);
+# `c4d config show GROUP/PRESET` names its group itself
+COMMAND_GROUPS = {"datagen": "datagen", "inspect": "inspect", "pretrain-pointmaps": "pointmaps",
+                  "train": "dynpt", "eval": "dynpt", "run": "c4d", "demo": "demo", "track": None,
+                  "eval-recon": None}
+COMMAND = re.compile(r"(?:\bc4d +([a-z][a-z-]*)|-m +dynpt\.cli_train)([^`\n]*)")
+COMMAND_END = re.compile(r"`|\s#|[|;)\"']|&&")  # a command line ends at these
+TOKEN = re.compile(r"([a-z][a-z0-9_.]*)=")
+
+
+def _documented_command_keys():
+    """(file, command, group, key) of every key=value on a `c4d COMMAND ...` line of the docs,
+    presets and code (backslash-continued lines joined)."""
+    for path in _documenting_files():
+        text = re.sub(r"\\\n\s*", " ", path.read_text())
+        for match in COMMAND.finditer(text):
+            command, tokens = match.group(1) or "train", COMMAND_END.split(match.group(2))[0].split()
+            if command == "config":
+                if len(tokens) < 2 or tokens[0] != "show" or tokens[1].split("/")[0] not in RULES:
+                    continue  # prose, or GROUP/PRESET itself
+                group = tokens[1].split("/")[0]
+            elif command in COMMAND_GROUPS:
+                group = COMMAND_GROUPS[command]
+            else:
+                continue  # prose: "c4d reconstructs ..."
+            for token in tokens:
+                if TOKEN.match(token):
+                    yield path.relative_to(REPO), command, group, TOKEN.match(token).group(1)
+
+
+def test_documented_commands_set_keys_of_their_own_group():
+    """Each documented `c4d COMMAND` line's key=value overrides (dotted or not) are keys of that
+    command's config group (`c4d run ... frames=6` names a datagen key: refused when run)."""
+    found = list(_documented_command_keys())
+    assert len(found) > 30 and {"train", "eval", "config"} <= {c for _, c, _, _ in found}
+    wrong = [f"{path}: c4d {command} {key}=" for path, command, group, key in found
+             if key not in RULES.get(group, {})]
+    assert wrong == []
