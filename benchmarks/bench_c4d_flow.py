@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from c4d_pipeline.flow import build_flow
-from c4d_pipeline.motion_mask import correspondence_motion_masks, ego_flow, flow_only_motion_masks, oracle_tracks
+from c4d_pipeline.ground_truth import oracle_tracks
+from c4d_pipeline.motion_mask import correspondence_motion_masks, ego_flow, flow_only_motion_masks
 from timing import median_seconds
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes

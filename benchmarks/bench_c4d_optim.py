@@ -38,9 +38,8 @@ def one_case(frames: int, height: int, width: int, iters: int, threads: int, ove
 
     from c4d_core.config import load_config
     from c4d_pipeline.flow import build_flow
-    from c4d_pipeline.motion_mask import oracle_tracks
+    from c4d_pipeline.ground_truth import GroundTruthPointmaps, oracle_tracks
     from c4d_pipeline.optimize import optimise
-    from c4d_pipeline.pointmaps import GroundTruthPointmaps
     from c4d_pipeline.scene_graph import graph_from_config
     from tests.synthetic_scenes import make_box_scene
 
@@ -105,9 +104,8 @@ def baseline_case(variant: str, iters: int, threads: int) -> dict:
     from c4d_core.config import load_config
     from c4d_pipeline.alignment import initialise
     from c4d_pipeline.flow import build_flow
-    from c4d_pipeline.motion_mask import ground_truth_motion_masks
+    from c4d_pipeline.ground_truth import GroundTruthPointmaps, ground_truth_motion_masks
     from c4d_pipeline.optimize import Stage1, rescale_world
-    from c4d_pipeline.pointmaps import GroundTruthPointmaps
     from c4d_pipeline.scene_graph import graph_from_config
     from tests.synthetic_scenes import make_box_scene
 

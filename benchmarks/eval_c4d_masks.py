@@ -30,16 +30,14 @@ import numpy as np
 from c4d_core.config import load_config
 from c4d_pipeline.eval_metrics import mask_iou
 from c4d_pipeline.flow import build_flow
+from c4d_pipeline.ground_truth import GroundTruthPointmaps, ground_truth_motion_masks, oracle_tracks
 from c4d_pipeline.motion_mask import (
     MotionMaskConfig,
     correspondence_motion_masks,
     ego_flow,
     flow_only_motion_masks,
-    ground_truth_motion_masks,
-    oracle_tracks,
     pairwise_ego_flow,
 )
-from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from c4d_pipeline.scene_graph import graph_from_config
 from datagen import read_scenes
 

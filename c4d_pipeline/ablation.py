@@ -2,7 +2,8 @@
 
 For every scene and static-world-bias setting, the same inputs (ground-truth pointmaps with noise,
 optical flow, C4D motion masks from the oracle tracker's mobility + flow, the scene's 2-D tracks
-for PTS) go through five variants:
+for PTS) go through the variants of configs/c4d/ablation/objectives.yaml (the table's rows and
+their c4d config overrides):
   GA only   stage 1 with GA alone, no stage 2 (DUSt3R-style global alignment)
   w/o CMA   GA + CTS, then PTS
   w/o CTS   GA + CMA, then PTS
@@ -30,27 +31,46 @@ import cv2
 import numpy as np
 import torch
 
-from c4d_core.config import load_config
+from c4d_core.config import load_config, to_dict
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
 from c4d_pipeline.eval_metrics import depth_metrics, mask_iou, pose_metrics
-from c4d_pipeline.flow import build_flow, resize_intrinsics, resize_nearest
-from c4d_pipeline.motion_mask import (MotionMaskConfig, correspondence_motion_masks,
-                                      ground_truth_motion_masks, oracle_tracks)
+from c4d_pipeline.flow import build_flow
+from c4d_pipeline.ground_truth import (ground_truth_motion_masks, oracle_tracks, resize_intrinsics,
+                                       resize_nearest)
+from c4d_pipeline.motion_mask import MotionMaskConfig, correspondence_motion_masks
 from c4d_pipeline.optimize import optimise
-from c4d_pipeline.pointmaps import GroundTruthPointmaps
+from c4d_pipeline.pointmap_sources import build_pointmaps
 from c4d_pipeline.scene_graph import graph_from_config
 from datagen.scene import Scene
 
 log = logging.getLogger("c4d.ablation")
 
-VARIANTS = ("GA only", "w/o CMA", "w/o CTS", "w/o PTS", "C4D")
-RUNS = {  # stage-1 runs and their weight overrides; "w/o PTS" reuses the C4D run's stage-1 depth
-    "GA only": ["weights.cma=0", "weights.cts=0", "weights.pts=0"],
-    "w/o CMA": ["weights.cma=0"],
-    "w/o CTS": ["weights.cts=0"],
-    "C4D": [],
-}
+
+def read_variants(table: str | Path = "objectives") -> tuple[tuple[str, ...], dict[str, list[str]],
+                                                            dict[str, str]]:
+    """The ablation's rows from a YAML of configs/c4d/ablation/ (a name) or a path, checked:
+    (every row in the table's order, {run row: its c4d overrides}, {row: the run whose stage-1
+    depth it reports}). Every run's overrides must load over the default c4d config."""
+    rows = to_dict(load_config("c4d/ablation", table))
+    runs, stage1_of = {}, {}
+    for name, row in rows.items():
+        if not isinstance(row, dict) or len(row) != 1 or not set(row) <= {"overrides", "stage1_of"}:
+            raise UserError(f"ablation table {table}: row {name!r} must hold exactly one of "
+                            f"`overrides: [key=value, ...]` or `stage1_of: ROW`, got {row!r}")
+        if "overrides" in row:
+            runs[name] = [str(item) for item in row["overrides"]]
+            load_config("c4d", "default", overrides=runs[name])
+        else:
+            stage1_of[name] = row["stage1_of"]
+    unknown = {name: run for name, run in stage1_of.items() if run not in runs}
+    if unknown:
+        raise UserError(f"ablation table {table}: `stage1_of` must name a row with overrides, got {unknown}")
+    return tuple(rows), runs, stage1_of
+
+
+# the table's rows; the runs (row -> weight overrides); rows read from a run's stage-1 depth
+VARIANTS, RUNS, STAGE1_OF = read_variants()
 METRICS = ("ate", "rpe_trans", "rpe_rot", "abs_rel", "rmse", "delta_1_25")
 
 
@@ -95,14 +115,11 @@ def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, fl
     preset/overrides: the c4d config every variant starts from (each adds its weight overrides);
     variants: the stage-1 runs (keys of RUNS) to make.
     """
-    cfg = load_config("c4d", preset, overrides=overrides)
+    cfg = load_config("c4d", preset, overrides=[*overrides, f"gt_pointmaps.static_bias={json.dumps(bias)}"])
     num_frames = scene.num_frames
     edges = graph_from_config(num_frames, cfg.graph)
     pairs = [tuple(map(int, e)) for e in edges]
-    gp = cfg.gt_pointmaps
-    source = GroundTruthPointmaps(scene, gp.depth_noise, gp.smooth_noise, gp.smooth_cells,
-                                  gp.scale_range, gp.conf_max, bias, gp.bias_fit, gp.seed)
-    pw = source.pointmaps(scene.rgb, edges)
+    pw = build_pointmaps("gt", cfg, scene=scene).pointmaps(scene.rgb, edges)
     flows = build_flow(flow_spec, scene=scene).flow(scene.rgb, pairs)
     tracks = oracle_tracks(scene)
     gt_masks = ground_truth_motion_masks(scene)
@@ -121,8 +138,8 @@ def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, fl
                        tracks=tracks.tracks, visible=tracks.visible)
         out["seconds"][name] = time.perf_counter() - start
         out[name] = scores(res.depth, res.cam_to_world, scene)
-        if name == "C4D":
-            out["w/o PTS"] = scores(res.depth_stage1, res.cam_to_world, scene)
+        for row in (row for row, run in STAGE1_OF.items() if run == name):
+            out[row] = scores(res.depth_stage1, res.cam_to_world, scene)
     return out
 
 
@@ -161,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bias", default="on,off", help="static-world bias settings to run")
     parser.add_argument("--variants", default=",".join(RUNS),
                         help="comma-separated stage-1 runs out of " + ", ".join(RUNS)
-                        + " ('w/o PTS' comes with C4D)")
+                        + "".join(f" ('{row}' comes with {run})" for row, run in STAGE1_OF.items()))
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("overrides", nargs="*", help="config key=value overrides")
     args = parser.parse_args(argv)

@@ -1,4 +1,4 @@
-"""Motion masks: which pixels move in the world (C4D sec. 3.2.2), a flow-only baseline, the truth.
+"""Motion masks: which pixels move in the world (C4D sec. 3.2.2), and a flow-only baseline.
 
 C4D's correspondence-guided mask, for every directed pair (t, t') of the scene graph:
   1. static points: tracker points visible at frame t whose mobility probability is below a
@@ -29,6 +29,7 @@ are its geometry input, from either
   - `pairwise_ego_flow`: a pair's own pointmaps, camera j placed by PnP-RANSAC (MonST3R's route);
   - `ego_flow`: per-frame depth (H,W), K (3,3) and camera-to-world poses (4,4), e.g. an
     optimiser's output or the ground truth (an oracle).
+The oracles (tracks from a scene's labels, true motion masks) are in `c4d_pipeline.ground_truth`.
 """
 
 from __future__ import annotations
@@ -43,8 +44,6 @@ import numpy as np
 from c4d_core.config import defaults_from
 from c4d_core.errors import UserError
 from c4d_core.geometry import pixel_grid, project, unproject_depth_map
-from c4d_pipeline.flow import scene_point_motion
-from datagen.scene import Scene
 
 log = logging.getLogger(__name__)
 Pair = tuple[int, int]
@@ -74,31 +73,6 @@ class MotionMasks:
 
     masks: np.ndarray
     pair_info: list[dict[str, Any]] = field(default_factory=list)
-
-
-@dataclass
-class SceneTracks:
-    """A tracker result built from a scene's labels (the oracle tracker); same fields as dynpt's."""
-
-    tracks: np.ndarray  # float32 (T,N,2) (x, y) pixels
-    visible: np.ndarray  # bool (T,N)
-    confidence: np.ndarray  # float32 (T,N)
-    moving: np.ndarray  # float32 (T,N) probability
-    queries: np.ndarray  # float32 (N,3) (t, x, y)
-
-
-def oracle_tracks(scene: Scene) -> SceneTracks:
-    """The scene's ground-truth tracks and mobility labels as a tracker result (an oracle DynPT)."""
-    if scene.moving is None:
-        raise UserError("the scene has no mobility labels; generate it with a preset that labels motion")
-    n = np.arange(scene.num_tracks)
-    return SceneTracks(
-        tracks=scene.tracks.transpose(1, 0, 2).astype(np.float32),
-        visible=~scene.occluded.T,
-        confidence=np.ones(scene.occluded.T.shape, np.float32),
-        moving=scene.moving.T.astype(np.float32),
-        queries=np.stack([scene.query_frame, *scene.tracks[n, scene.query_frame].T], -1).astype(np.float32),
-    )
 
 
 def _numpy(x) -> np.ndarray:
@@ -250,8 +224,9 @@ def correspondence_motion_masks(
     """C4D's motion masks (T,H,W) from a tracker result, flows (P,H,W,2) and their pairs (i, j).
 
     `tracks` has tracks (T,N,2), visible (T,N), confidence (T,N), moving (T,N) (dynpt's
-    TrackResult or `oracle_tracks`); flows[p] is the flow from pairs[p][0] to pairs[p][1] at
-    the tracker's pixel coordinates. Frame t's mask is the union over the pairs that start at t.
+    TrackResult, from the tracker or `ground_truth.oracle_tracks`); flows[p] is the flow from
+    pairs[p][0] to pairs[p][1] at the tracker's pixel coordinates. Frame t's mask is the union
+    over the pairs that start at t.
     """
     num_frames = track_arrays(tracks)["tracks"].shape[0]
     _check_flows(flows, pairs, num_frames)
@@ -337,20 +312,3 @@ def flow_only_motion_masks(
     _warn_frames_without_pairs(pairs, num_frames)
     masks = (total / np.maximum(count, 1)[:, None, None] > threshold) & (count > 0)[:, None, None]
     return MotionMasks(masks, [{"pair": [int(i), int(j)], "method": "ego-flow"} for i, j in pairs])
-
-
-def ground_truth_motion_masks(scene: Scene, hw: tuple[int, int] | None = None) -> np.ndarray:
-    """bool (T,h,w): pixels whose surface point moved more than the scene's mobility threshold
-    in the world since the previous frame (frame 0: until frame 1), the per-pixel version of the
-    tracks' `moving` label. `hw` resamples to (h, w) (default: scene size).
-    """
-    if scene.depth is None or scene.segmentation is None or scene.object_to_world is None:
-        raise UserError("ground-truth motion masks need the scene's depth, segmentation and object poses")
-    threshold = float(scene.meta.get("mobility_threshold", 0.01))
-    hw = hw or scene.image_size
-    masks = np.zeros((scene.num_frames, *hw), bool)
-    for t in range(scene.num_frames):
-        other = t - 1 if t > 0 else min(1, scene.num_frames - 1)
-        points_t, points_other = scene_point_motion(scene, t, other, hw)
-        masks[t] = np.linalg.norm(points_t - points_other, axis=-1) > threshold
-    return masks

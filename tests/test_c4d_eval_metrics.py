@@ -190,7 +190,7 @@ def test_float32_ground_truth_against_itself_scores_zero_rotation_error():
 def test_pose_metrics_equal_evo_on_an_optimiser_trajectory():
     from c4d_core.config import load_config
     from c4d_pipeline.optimize import optimise
-    from c4d_pipeline.pointmaps import GroundTruthPointmaps
+    from c4d_pipeline.ground_truth import GroundTruthPointmaps
     from c4d_pipeline.scene_graph import strided_window_pairs
     from tests.synthetic_scenes import make_box_scene
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from c4d.cli import main
-from c4d_pipeline.motion_mask import ground_truth_motion_masks
+from c4d_pipeline.ground_truth import ground_truth_motion_masks
 from c4d_pipeline.outputs import Reconstruction, write_reconstruction
 from tests.synthetic_scenes import make_box_scene
 from datagen.shards import ShardWriter, encode_scene, scene_key

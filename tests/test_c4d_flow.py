@@ -6,7 +6,8 @@ import pytest
 
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
-from c4d_pipeline.flow import build_flow, resize_nearest
+from c4d_pipeline.flow import build_flow
+from c4d_pipeline.ground_truth import resize_nearest
 from tests.synthetic_scenes import make_box_scene
 from datagen.generate import generate_scene
 

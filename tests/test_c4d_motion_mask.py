@@ -10,18 +10,16 @@ import torch
 from c4d_core.errors import UserError
 from c4d_pipeline.eval_metrics import mask_iou
 from c4d_pipeline.flow import build_flow
+from c4d_pipeline.ground_truth import GroundTruthPointmaps, ground_truth_motion_masks, oracle_tracks
 from c4d_pipeline.motion_mask import (
     MotionMaskConfig,
     correspondence_motion_masks,
     ego_flow,
     flow_only_motion_masks,
-    ground_truth_motion_masks,
-    oracle_tracks,
     pair_motion_mask,
     pairwise_ego_flow,
     sampson_distance,
 )
-from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from c4d_pipeline.scene_graph import strided_window_pairs
 from tests.synthetic_scenes import make_box_scene
 

@@ -12,8 +12,7 @@ from c4d_pipeline import optimize as opt
 from c4d_pipeline.alignment import initialise
 from c4d_pipeline.eval_metrics import pose_metrics
 from c4d_pipeline.flow import build_flow
-from c4d_pipeline.motion_mask import ground_truth_motion_masks, oracle_tracks
-from c4d_pipeline.pointmaps import GroundTruthPointmaps
+from c4d_pipeline.ground_truth import GroundTruthPointmaps, ground_truth_motion_masks, oracle_tracks
 from c4d_pipeline.scene_graph import graph_from_config, strided_window_pairs
 from c4d_pipeline.scene_params import SceneParams
 from tests.synthetic_scenes import make_box_scene
@@ -146,6 +145,23 @@ def test_ablation_runs_every_variant_on_one_scene():
     for variant in VARIANTS:
         assert np.isfinite(out[variant]["ate"]) and 0 < out[variant]["delta_1_25"] <= 1
     assert 0 <= out["mask_iou"] <= 1
+
+
+def test_the_ablation_table_is_read_from_its_yaml_in_order_and_checked(tmp_path):
+    """configs/c4d/ablation/objectives.yaml holds Table 6's rows in order; a malformed row or an
+    override the c4d config lacks is one `UserError` at load."""
+    from c4d_pipeline.ablation import RUNS, STAGE1_OF, VARIANTS, read_variants
+
+    assert VARIANTS == ("GA only", "w/o CMA", "w/o CTS", "w/o PTS", "C4D")
+    assert RUNS == {"GA only": ["weights.cma=0", "weights.cts=0", "weights.pts=0"],
+                    "w/o CMA": ["weights.cma=0"], "w/o CTS": ["weights.cts=0"], "C4D": []}
+    assert STAGE1_OF == {"w/o PTS": "C4D"}
+    for text, message in (("A: {overrides: [weights.cma=0], stage1_of: A}\n", "exactly one of"),
+                          ("A: {overrides: [weights.cmaa=0]}\n", "cmaa"),
+                          ("A: {stage1_of: B}\n", "must name a row with overrides")):
+        (tmp_path / "table.yaml").write_text(text)
+        with pytest.raises(UserError, match=message):
+            read_variants(tmp_path / "table.yaml")
 
 
 REFERENCE = Path(__file__).parent / "data" / "c4d_optimise_reference.npz"

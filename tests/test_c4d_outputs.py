@@ -8,12 +8,11 @@ import pytest
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
 from c4d_pipeline.flow import build_flow
-from c4d_pipeline.motion_mask import oracle_tracks
+from c4d_pipeline.ground_truth import GroundTruthPointmaps, oracle_tracks
 from c4d_pipeline.outputs import (Reconstruction, read_ply, read_reconstruction, read_tum, tum_lines,
                                   write_reconstruction)
 from c4d_core import geometry
 from c4d_pipeline.pipeline import lift_tracks, reconstruct
-from c4d_pipeline.pointmaps import GroundTruthPointmaps
 from tests.synthetic_scenes import make_box_scene
 
 

@@ -1,11 +1,13 @@
-"""Ground-truth pairwise pointmaps: geometry, per-pair scale, noise/confidence, static-world bias."""
+"""Pairwise pointmaps: the ground-truth source (geometry, per-pair scale, noise/confidence, static-world
+bias) and the source factory."""
 
 import numpy as np
 import pytest
 
 from c4d_core import geometry
 from c4d_core.errors import UserError
-from c4d_pipeline.pointmaps import GroundTruthPointmaps, PairwisePointmaps, PointmapSource, sanitize
+from c4d_pipeline.ground_truth import GroundTruthPointmaps
+from c4d_pipeline.pointmaps import PairwisePointmaps, PointmapSource, sanitize
 from tests.synthetic_scenes import make_box_scene
 
 
@@ -95,3 +97,41 @@ def test_bad_inputs(dynamic_scene):
                            *(np.ones((1, 2, 2), np.float32),) * 2)
     with pytest.raises(UserError, match="outside"):
         pw.validate(5, (2, 2))
+
+
+def test_build_pointmaps_names_every_source_and_refuses_unknown_ones(dynamic_scene, tmp_path):
+    """'gt' is the config's ground-truth source, 'dust3r:PATH' a network file; anything else is
+    one `UserError` that lists the registered specs."""
+    import torch
+
+    from c4d_core.config import load_config
+    from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
+    from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
+    from c4d_pipeline.pointmap_sources import POINTMAP_SOURCES, build_pointmaps
+    from c4d_pipeline.pointmap_training import save_official
+
+    sc = dynamic_scene
+    cfg = load_config("c4d", "default", overrides=["gt_pointmaps.seed=5", "pointmaps.batch=3"])
+    edges = np.array([[0, 2], [3, 1]])
+    built = build_pointmaps("gt", cfg, scene=sc).pointmaps(sc.rgb, edges)
+    direct = GroundTruthPointmaps.from_config(sc, cfg.gt_pointmaps).pointmaps(sc.rgb, edges)
+    assert np.array_equal(built.pts_j, direct.pts_j) and np.array_equal(built.conf_i, direct.conf_i)
+
+    torch.manual_seed(0)
+    net = Dust3rNet(Dust3rConfig(enc_embed_dim=32, enc_depth=1, enc_num_heads=2, dec_embed_dim=32,
+                                 dec_depth=1, dec_num_heads=2, dpt_layer_dims=(8, 8, 16, 16),
+                                 dpt_feature_dim=16, dpt_last_dim=8))
+    path = save_official(net, (32, 32), tmp_path / "net.pth")
+    source = build_pointmaps(f"dust3r:{path}", cfg, device="cpu")
+    assert isinstance(source, Dust3rPointmaps) and source.batch_size == 3
+    assert isinstance(source, PointmapSource)
+
+    with pytest.raises(UserError, match="unknown pointmap source 'monst3r:x'; choose one of 'gt', 'dust3r:PATH'"):
+        build_pointmaps("monst3r:x", cfg)
+    assert set(POINTMAP_SOURCES) == {"gt", "dust3r"}
+    with pytest.raises(UserError, match="needs a generated scene"):
+        build_pointmaps("gt", cfg)
+    with pytest.raises(UserError, match="needs weights"):
+        build_pointmaps("dust3r", cfg)
+    with pytest.raises(UserError, match="does not exist"):
+        build_pointmaps(f"dust3r:{tmp_path / 'missing.pth'}", cfg)

@@ -14,7 +14,7 @@ from c4d.cli import main
 from c4d.inspect import point_render, recon_report
 from c4d_core import geometry
 from c4d_pipeline import outputs
-from c4d_pipeline.motion_mask import ground_truth_motion_masks
+from c4d_pipeline.ground_truth import ground_truth_motion_masks
 from tests.synthetic_scenes import make_box_scene
 from datagen import shards
 from datagen.scene import Scene
