@@ -230,3 +230,21 @@ def test_out_of_gpu_memory_advises_a_real_setting(inputs, monkeypatch):
     flags = {flag for action in parser._actions for flag in action.option_strings}
     assert "device=cpu" in message and "device" in RULES["c4d"]
     assert all(word in flags for word in message.replace("(", " ").split() if word.startswith("--"))
+
+
+def test_too_few_frames_or_a_huge_size_are_refused_before_anything_is_written(inputs, tmp_path, capsys):
+    """One frame left (`--stride 100` of 8, `--max-frames 1`), a graph that cannot connect the
+    frames, or `--size 100000` (a numpy ArrayMemoryError traceback): one line and no OUT (the
+    one-frame case was refused only after OUT/config.yaml was written)."""
+    folder, video, ckpt, _ = inputs
+    out = tmp_path / "out"
+    base = ["run", str(video), "--out", str(out), "--pointmaps", str(ckpt), "--preset", "tiny"]
+    for extra, message in [(["--size", "64", "--stride", "100"], "gives 1 frame(s) at video.stride=100"),
+                           (["--size", "64", "--max-frames", "1"], "`video.max_frames` = 1 is out of range"),
+                           (["--size", "64", "--max-frames", "2", "graph.start=2"], "does not connect all 2 frames"),
+                           (["--size", "100000"], "`pointmaps.size` = 100000 is out of range")]:
+        assert main([*base, *extra]) == 2, extra
+        err = capsys.readouterr().err
+        errors = [line for line in err.splitlines() if "c4d: error" in line]
+        assert len(errors) == 1 and message in errors[0] and "Traceback" not in err, err
+        assert not out.exists(), extra

@@ -66,3 +66,20 @@ def test_every_subcommand_takes_threads(restore_threads, tmp_path, capsys):
     with pytest.raises(UserError):
         run_subcommand(["eval-recon", "--threads", "2", "--pred", str(tmp_path), "--gt", str(tmp_path)])
     assert torch.get_num_threads() == 2
+
+
+def test_run_threads_is_the_config_key_and_set_before_the_networks_load(restore_threads, tmp_path, capsys):
+    """`c4d run --threads N` stands for the key `threads` (both at once: one-line refusal, as for
+    the other flags), and the key sets the threads before anything is loaded (it was applied in
+    the optimisation only); here the run stops at its missing video, after that point."""
+    from c4d.cli import main
+
+    out = tmp_path / "out"
+    assert main(["run", str(tmp_path / "none.mp4"), "--threads", "1", "threads=2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "`threads` is set both by a flag and by `threads=...`" in err and len(err.splitlines()) == 1
+    torch.set_num_threads(1)
+    with pytest.raises(UserError, match="does not exist"):
+        run_subcommand(["run", str(tmp_path / "none.mp4"), "threads=3", "--out", str(out)])
+    assert torch.get_num_threads() == 3 and cv2.getNumThreads() == 3
+    assert not out.exists()
