@@ -150,3 +150,36 @@ def test_eval_uses_the_checkpoints_own_eval_settings():
     assert list(cfg.resolution) == [48, 48] and cfg.num_tracks == 64 and cfg.num_scenes == 2
     assert list(eval_config(saved, "paper-gpu", []).resolution) == [256, 256]
     assert list(eval_config({"extra": {}}, None, []).resolution) == [256, 256]  # nothing saved
+
+
+def test_eval_mode_is_the_key_eval_query_mode(tmp_path, davis_pickle, capsys):
+    """`eval.query_mode=strided` is what `--mode strided` does (it still printed "first
+    queries"); both at once are refused; without either, the checkpoint's own mode is used."""
+    ckpt = tmp_path / "tiny.pt"
+    model = build_model(load_config("dynpt", "tiny-cpu").model)
+    saved = {"eval": {"resolution": [32, 32], "num_tracks": 8, "num_scenes": 2, "seed": 0, "query_mode": "strided"}}
+    save_checkpoint(ckpt, model, step=0, extra={"train_config": saved})
+    for argv in (["eval.query_mode=strided", "--config", "tiny-cpu"], []):  # the key; the checkpoint's
+        out = tmp_path / f"eval{len(argv)}"
+        assert main(["eval", "--ckpt", str(ckpt), "--data", str(davis_pickle), "--out", str(out), *argv]) == 0
+        assert "(strided queries" in capsys.readouterr().out
+        assert json.loads((out / "eval.json").read_text())["info"]["mode"] == "strided"
+    assert main(["eval", "--ckpt", str(ckpt), "--data", str(davis_pickle), "--mode", "first",
+                 "eval.query_mode=strided"]) == 2
+    assert "`eval.query_mode` is set both by a flag" in capsys.readouterr().err
+
+
+def test_too_small_network_size_names_that_size_and_what_sets_it():
+    """The check is on the network's size: a 64x64 video into a model whose resolution is 12x10
+    (an old checkpoint; the schema now refuses it) names 12x10 and model.resolution, not 64x64."""
+    from c4d_core.errors import UserError
+    from dynpt.inference import Tracker
+
+    tracker = Tracker(build_model(load_config("dynpt", "tiny-cpu").model), "cpu")
+    tracker.model.config["resolution"] = (10, 12)  # (H, W)
+    video = np.zeros((3, 64, 64, 3), np.uint8)
+    with pytest.raises(UserError, match=r"network size 12x10 pixels \(the checkpoint's model.resolution\)"):
+        tracker.track(video)
+    tracker.model.config["resolution"] = None  # the frames' own size: what sets it is named
+    with pytest.raises(UserError, match="40x5 pixels .*--size/--max-size of c4d track.*eval.resolution"):
+        tracker.track(np.zeros((3, 5, 40, 3), np.uint8))
