@@ -1,6 +1,6 @@
-"""Everything GPU-bound, once, in under 8 minutes on one GPU; prints one Markdown table.
+"""Everything GPU-bound, once, within a time budget (8 minutes) on one GPU; prints one Markdown table.
 
-    python benchmarks/device_check.py [--out DIR] [--train-seconds 300]   # a CUDA machine
+    python benchmarks/device_check.py [--out DIR] [--train-seconds 300] [--budget-s 480]  # CUDA
     python benchmarks/device_check.py --cpu                               # tiny sizes, ~1 minute
 
 Sections, each through the project's own builders (configs, `dynpt.train.Trainer`,
@@ -9,19 +9,22 @@ Sections, each through the project's own builders (configs, `dynpt.train.Trainer
 2. DynPT `paper-gpu-cnn-only` training speed at the paper crop (384x512, 24 frames, 384 tracks,
    batch 1 per GPU), bf16 autocast and fp32: clips/s over timed optimiser steps after warm-up, on
    one real batch reused (data loading excluded), and peak GPU memory;
-3. a real training run of a mid-sized config (the CNN-only model at a 256x256 crop, 16 frames,
-   256 tracks, batch 4) for --train-seconds on the fresh shards, data loading included; D-ACC and
-   AJ on the val set before and after (the number of steps is set from a short calibration, so
-   the OneCycle schedule completes);
-4. DUSt3R ViT-L 512 DPT (random weights saved and reloaded in the official checkpoint layout)
+3. DUSt3R ViT-L 512 DPT (random weights saved and reloaded in the official checkpoint layout)
    pair forward through `Dust3rPointmaps` at 512x384, in float32 (the default) and, on a GPU, with
    `pointmaps.precision=bf16`: seconds per pair at batch 1 and at the batch it picks from free
    memory, peak memory;
-5. C4D stage 1 (GA + CMA + CTS) seconds per iteration (median) at 24 and 90 frames, 512x288,
-   ground-truth pointmaps and flow of an analytic box scene (`tests/synthetic_scenes.py`).
+4. C4D stage 1 (GA + CMA + CTS) seconds per iteration (median) at 24 and 90 frames, 512x288,
+   ground-truth pointmaps and flow of an analytic box scene (`tests/synthetic_scenes.py`);
+5. a real training run of a mid-sized config (the CNN-only model at a 256x256 crop, 16 frames,
+   256 tracks, batch 4) on the fresh shards, data loading included; D-ACC and AJ on the val set
+   before and after. It runs last and lasts --train-seconds (300; --cpu 8) or what the budget has
+   left after the other sections, its own calibration and the final validation, if less (the
+   number of steps is set from the calibration, so the OneCycle schedule completes).
 
-A section that fails puts its one-line error in the table and the run goes on; the exit status
-is then 1. `--cpu` hides any GPU and shrinks every size (CI runs it: tests/test_device_check.py).
+Each section's seconds are printed as it ends; the table's last row is the total time against
+--budget-s (480). A section that fails puts its one-line error in the table and the run goes on;
+the exit status is then 1, as it is for a run over its budget. `--cpu` hides any GPU and shrinks
+every size (CI runs it: tests/test_device_check.py).
 """
 
 from __future__ import annotations
@@ -36,11 +39,16 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes
 
 ROWS: list[tuple[str, str, str, str]] = []  # (check, setting, result, peak memory)
+BUDGET_MARGIN = 15.0  # seconds of the budget kept free (the run's start and checkpoint, rounding)
+
+
+def log(message: str) -> None:
+    print(f"[device_check] {message}", file=sys.stderr, flush=True)
 
 
 def row(check: str, setting: str, result: str, memory: str = "-") -> None:
     ROWS.append((check, setting, result, memory))
-    print(f"[device_check] {check} | {setting} | {result} | {memory}", file=sys.stderr, flush=True)
+    log(f"{check} | {setting} | {result} | {memory}")
 
 
 def gib(nbytes: int | None) -> str:
@@ -145,17 +153,26 @@ def _sync(device) -> None:
         torch.cuda.synchronize(device)
 
 
-# --- 3. a real training run ---------------------------------------------------------------------
+# --- 5. a real training run ---------------------------------------------------------------------
 
 
-def training_run(train_dir: Path, val_dir: Path, out: Path, sizes: Sizes) -> None:
+def training_run(train_dir: Path, val_dir: Path, out: Path, sizes: Sizes, deadline: float) -> None:
+    """The run trains for `sizes.train_seconds` or until `deadline` (a `time.perf_counter()` time)
+    less the final validation (as long as the first) and `BUDGET_MARGIN`, whichever is sooner;
+    at least 3 steps."""
     import math
 
     from dynpt.device import peak_memory, reset_peak_memory
     from dynpt.evaluate import evaluate_model
 
-    calib = _trainer(sizes.train_preset, [*sizes.train, "train.steps=100"], train_dir, out / "calibrate")
+    # "before": the calibration trainer's fresh model, the run's first weights (same seed, same model)
+    calib = _trainer(sizes.train_preset, [*sizes.train, "train.steps=100"], train_dir, out / "calibrate", val_dir)
     try:
+        ev = calib.cfg.eval
+        start = time.perf_counter()
+        before = evaluate_model(calib.model, calib.val_scenes, ev, calib.device,
+                                query_mode=ev.query_mode)["summary"]
+        eval_seconds = time.perf_counter() - start
         batches = iter(calib.loader)
         calib.train_step(batches)  # warm-up (workers start, kernels are chosen)
         start = time.perf_counter()
@@ -165,13 +182,14 @@ def training_run(train_dir: Path, val_dir: Path, out: Path, sizes: Sizes) -> Non
         del batches  # its loader workers stop before the run starts its own
     finally:
         calib.close()
-    steps = max(3, int(sizes.train_seconds / per_step))
+    left = deadline - time.perf_counter() - eval_seconds - BUDGET_MARGIN
+    seconds_wanted = min(sizes.train_seconds, left)
+    steps = max(3, int(seconds_wanted / per_step))
+    log(f"training run: {seconds_wanted:.0f} s wanted ({sizes.train_seconds:.0f} s asked, {left:.0f} s "
+        f"left in the budget), {per_step:.2f} s per step -> {steps} steps")
     trainer = _trainer(sizes.train_preset, [*sizes.train, f"train.steps={steps}", f"eval.every={steps}",
                                             f"train.ckpt_every={steps}"], train_dir, out / "run", val_dir)
     try:
-        ev = trainer.cfg.eval
-        before = evaluate_model(trainer.model, trainer.val_scenes, ev, trainer.device,
-                                query_mode=ev.query_mode)["summary"]
         reset_peak_memory(trainer.device)
         start = time.perf_counter()
         after = trainer.fit()
@@ -189,7 +207,7 @@ def training_run(train_dir: Path, val_dir: Path, out: Path, sizes: Sizes) -> Non
             f"{100 * b:.1f} -> {100 * a:.1f}")
 
 
-# --- 4. DUSt3R pair forward ---------------------------------------------------------------------
+# --- 3. DUSt3R pair forward ---------------------------------------------------------------------
 
 
 def dust3r_forward(out: Path, sizes: Sizes) -> None:
@@ -230,7 +248,7 @@ def dust3r_forward(out: Path, sizes: Sizes) -> None:
                 f"{how}, {dtype}", f"{seconds * 1e3:.0f} ms/pair", gib(peak_memory(source.device)))
 
 
-# --- 5. C4D stage 1 -----------------------------------------------------------------------------
+# --- 4. C4D stage 1 -----------------------------------------------------------------------------
 
 _SCENE = None  # the box scene of a C4D input worker (built once per worker, deterministic)
 
@@ -246,7 +264,7 @@ def _c4d_inputs(edges):
     """Ground-truth pointmaps (pts_i, pts_j, conf_i, conf_j) and flow of `edges` (E,2) of the
     worker's scene: float32 (E,H,W,3) x 2, (E,H,W) x 2, (E,H,W,2)."""
     from c4d_pipeline.flow import build_flow
-    from c4d_pipeline.pointmaps import GroundTruthPointmaps
+    from c4d_pipeline.ground_truth import GroundTruthPointmaps
 
     pw = GroundTruthPointmaps(_SCENE, static_bias=False).pointmaps(_SCENE.rgb, edges)
     flow = build_flow("gt", scene=_SCENE).flow(_SCENE.rgb, [tuple(map(int, e)) for e in edges])
@@ -308,8 +326,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cpu", action="store_true", help="hide the GPU; tiny sizes (about a minute)")
     parser.add_argument("--out", type=Path, help="working folder (default: a temporary one, removed)")
-    parser.add_argument("--train-seconds", type=float, help="length of the training run (300; --cpu 8)")
+    parser.add_argument("--train-seconds", type=float, help="length of the training run (300; --cpu 8); "
+                        "less if the budget has less left")
+    parser.add_argument("--budget-s", type=float, default=480.0,
+                        help="seconds the whole check may take [480]; over it, the exit status is 1")
     args = parser.parse_args(argv)
+    if args.budget_s <= 0:
+        parser.error(f"--budget-s must be positive, got {args.budget_s:g}")
     if args.cpu:
         os.environ["CUDA_VISIBLE_DEVICES"] = ""  # before torch is imported
     import torch
@@ -320,13 +343,16 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="device-check-") as tmp:
         out = args.out or Path(tmp)
         start, failed = time.perf_counter(), 0
+        deadline = start + args.budget_s
         shards = None
         sections = [("shards (c4d datagen)", lambda: make_shards(out, sizes)),
                     ("DynPT training speed", lambda: training_speed(shards[0], out, sizes)),
-                    ("DynPT training run", lambda: training_run(*shards, out, sizes)),
                     ("DUSt3R pair forward", lambda: dust3r_forward(out, sizes)),
-                    ("C4D stage 1 (GA+CMA+CTS)", lambda: c4d_stage1(sizes))]
+                    ("C4D stage 1 (GA+CMA+CTS)", lambda: c4d_stage1(sizes)),
+                    ("DynPT training run", lambda: training_run(*shards, out, sizes, deadline))]
+        seconds = []
         for name, section in sections:
+            section_start = time.perf_counter()
             if name.startswith("DynPT") and shards is None:
                 failed += 1
                 row(name, "SKIPPED", "no shards")
@@ -338,11 +364,17 @@ def main(argv: list[str] | None = None) -> int:
                 failed += 1
                 message = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
                 row(name, "FAILED", f"{type(exc).__name__}: {message}")
+            seconds.append(f"{name} {time.perf_counter() - section_start:.0f} s")
+            log(f"section {seconds[-1]}")
         total = time.perf_counter() - start
+    over = total > args.budget_s
+    row("total", ", ".join(seconds), f"{total:.0f} s of the {args.budget_s:.0f} s budget"
+        f"{' (OVER BUDGET)' if over else ''}")
     print(f"device_check: torch {torch.__version__}, GPU {gpu}, {'--cpu, ' if args.cpu else ''}"
-          f"{total:.0f} s in all, {failed} section(s) failed\n")
+          f"{total:.0f} s in all (budget {args.budget_s:.0f} s{', exceeded' if over else ''}), "
+          f"{failed} section(s) failed\n")
     print(table())
-    return 1 if failed else 0
+    return 1 if failed or over else 0
 
 
 if __name__ == "__main__":
