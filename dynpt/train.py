@@ -161,7 +161,7 @@ def remove_temporaries(folder: Path) -> None:
     `c4d_core.files.atomic_path`, `.last.pt.tmp` of `alias_last`), with a log line each."""
     for path in sorted(folder.glob(".*.tmp*")):
         if path.is_file() and re.fullmatch(r"\..+\.tmp\d*(\.\w+)?", path.name):
-            log.info("removing %s, left by an interrupted write", path)
+            log.warning("warning: removing %s, left by an interrupted write", path)
             path.unlink(missing_ok=True)
 
 
