@@ -137,7 +137,7 @@ class Demo:
     # -- 4. reconstruct
     def reconstruct(self, folder: Path, checkpoint: str) -> dict:
         from c4d_pipeline.ablation import RUNS
-        from c4d_pipeline.cli_eval_recon import evaluate
+        from c4d_pipeline.eval_recon import evaluate
         from c4d_pipeline.flow import build_flow
         from c4d_pipeline.outputs import read_reconstruction
         from c4d_pipeline.pipeline import reconstruct

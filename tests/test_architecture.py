@@ -1,10 +1,15 @@
-"""The house's floors: no import cycle, no upward import, no torch in the floor or the generator.
+"""The house's floors: no import cycle, no upward import, no torch in the floor or the generator,
+and no module importing a command module.
 
 Floors, bottom to top: c4d_core <- datagen <- dynpt <- c4d_pipeline <- c4d (the roof). Every
 import counts, whether at module level, inside a function or under `if TYPE_CHECKING:`; the one
 exception is an `if __name__ == "__main__":` block, which runs only when its file is the program
 (`torchrun -m dynpt.cli_train` enters through the roof's `c4d.cli.main`), so no importer depends on
-it. Modules are read with `ast`, never imported.
+it. A command module (`cli`, `cli_*`: `add_arguments` and `run` of one subcommand) is imported by
+no module: the dispatcher `c4d.cli` loads the chosen one by name, and what other modules need
+lives in a library module beside it (`c4d_pipeline.eval_recon` for `cli_eval_recon`). The one command
+module that may be imported is the dispatcher itself (by `c4d/__main__.py`). Modules are read with
+`ast`, never imported.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 FLOORS = ["c4d_core", "datagen", "dynpt", "c4d_pipeline", "c4d"]  # bottom first
 TORCH_FREE = {"c4d_core", "datagen"}
+DISPATCHER = "c4d.cli"
 
 
 def module_files(root: Path, packages: list[str]) -> dict[str, Path]:
@@ -110,7 +116,14 @@ def find_cycles(nodes, edges) -> list[list[str]]:
     return cycles
 
 
-def violations(root: Path, packages: list[str] = FLOORS, torch_free: set[str] = TORCH_FREE) -> list[str]:
+def is_command_module(module: str) -> bool:
+    """`datagen.cli`, `dynpt.cli_train`, `c4d.inspect.cli`, ...: a subcommand's module."""
+    last = module.rsplit(".", 1)[-1]
+    return last == "cli" or last.startswith("cli_")
+
+
+def violations(root: Path, packages: list[str] = FLOORS, torch_free: set[str] = TORCH_FREE,
+               dispatcher: str = DISPATCHER) -> list[str]:
     """Every broken rule, one readable line each (empty when the house stands)."""
     modules, edges, external = import_graph(root, packages)
     floor = {m: packages.index(m.split(".")[0]) for m in modules}
@@ -118,6 +131,8 @@ def violations(root: Path, packages: list[str] = FLOORS, torch_free: set[str] = 
     for (a, b), line in sorted(edges.items()):
         if floor[b] > floor[a]:
             problems.append(f"upward import: {a} (line {line}) imports {b}")
+        if is_command_module(b) and b != dispatcher:
+            problems.append(f"command module imported: {a} (line {line}) imports {b}")
     for module, names in sorted(external.items()):
         if module.split(".")[0] in torch_free and "torch" in names:
             problems.append(f"torch imported by {module}")
@@ -143,12 +158,24 @@ def test_every_floor_is_a_package_of_the_project():
     ({"low/a.py": "def f():\n    import torch.nn\n"}, "torch imported by low.a"),
     ({"high/c.py": "from . import d\n", "high/d.py": "from .c import X\n"},
      "import cycle: high.c <-> high.d"),
+    ({"high/cli_x.py": "def run(args):\n    pass\n", "high/report.py": "def f():\n    from high import cli_x\n"},
+     "command module imported: high.report (line 2) imports high.cli_x"),
 ])
 def test_the_checker_catches_each_kind_of_violation(tmp_path, files, expected):
     for name, text in {"low/__init__.py": "", "high/__init__.py": "", **files}.items():
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_text(text)
     assert expected in violations(tmp_path, ["low", "high"], torch_free={"low"})
+
+
+def test_only_the_dispatcher_is_an_importable_command_module(tmp_path):
+    for name, text in {"low/__init__.py": "", "low/cli.py": "def run(args):\n    pass\n",
+                       "high/__init__.py": "", "high/cli.py": "X = 1\n",
+                       "high/__main__.py": "from high.cli import X\n", "high/client.py": "from low import cli\n"}.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    assert violations(tmp_path, ["low", "high"], dispatcher="high.cli") == [
+        "command module imported: high.client (line 1) imports low.cli"]
 
 
 def test_a_main_block_is_not_an_import_of_the_module(tmp_path):

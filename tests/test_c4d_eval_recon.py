@@ -99,3 +99,53 @@ def test_bad_inputs_are_one_line_errors(shard, tmp_path, capsys):
     (out / "depth" / "000003.npy").unlink()
     assert main(["eval-recon", "--pred", str(out), "--gt", str(path)]) == 2
     assert "4 poses, 3 depth maps" in capsys.readouterr().err
+
+
+def write_sintel_sequence(root, name, scene, order=None):
+    """`scene` (its frames in `order`, default all in order) in MPI Sintel's training layout:
+    final/ frames, depth/ .dpt, camdata_left/ .cam."""
+    from c4d_core.geometry import invert_pose
+    from c4d_pipeline.eval_datasets import SINTEL_TAG
+
+    for folder in ("final", "depth", "camdata_left"):
+        (root / "training" / folder / name).mkdir(parents=True)
+    h, w = scene.image_size
+    for i, t in enumerate(range(scene.num_frames) if order is None else order):
+        stem = f"frame_{i + 1:04d}"
+        cv2.imwrite(str(root / "training/final" / name / f"{stem}.png"), scene.rgb[t][..., ::-1])
+        with open(root / "training/depth" / name / f"{stem}.dpt", "wb") as f:
+            np.array([SINTEL_TAG], np.float32).tofile(f)
+            np.array([w, h], np.int32).tofile(f)
+            scene.depth[t].astype(np.float32).tofile(f)
+        world_to_cam = invert_pose(scene.cam_to_world[t].astype(np.float64))[:3]
+        with open(root / "training/camdata_left" / name / f"{stem}.cam", "wb") as f:
+            np.array([SINTEL_TAG], np.float32).tofile(f)
+            np.concatenate([scene.intrinsics[t].ravel(), world_to_cam.ravel()]).astype(np.float64).tofile(f)
+
+
+def test_a_benchmark_sequence_on_disk_is_scored_with_dataset_and_root(shard, tmp_path, capsys):
+    _, scenes = shard
+    root = tmp_path / "sintel"
+    write_sintel_sequence(root, "alley_2", scenes[1], order=range(5, -1, -1))  # the same frames reversed
+    write_sintel_sequence(root, "market_2", scenes[1])
+    out = write_reconstruction(reconstruction(scenes[1], frames=list(range(6)), report=False), tmp_path / "out")
+    assert main(["eval-recon", "--pred", str(out), "--dataset", "sintel", "--root", str(root),
+                 "--sequence", "market_2"]) == 0
+    result = json.loads((out / "eval_recon.json").read_text())
+    assert result["dataset"] == "sintel" and result["sequence"] == "market_2"
+    assert result["frame_indices"] == list(range(6)) and "mask" not in result  # a benchmark has no masks
+    assert result["pose"]["ate"] < 1e-5 and result["pose"]["rpe_rot"] < 1e-2
+    assert result["depth"]["scale"]["abs_rel"] < 1e-5
+    assert "ATE" in capsys.readouterr().out
+    # The other sequence is not this reconstruction: its depth scores far worse.
+    assert main(["eval-recon", "--pred", str(out), "--dataset", "sintel", "--root", str(root),
+                 "--sequence", "alley_2", "--out", str(tmp_path / "other.json")]) == 0
+    other = json.loads((tmp_path / "other.json").read_text())
+    assert other["depth"]["scale"]["abs_rel"] > 0.02, other["depth"]
+    capsys.readouterr()
+    for args, message in [(["--sequence", "cave_2"], "not in the dataset"),
+                          ([], "has 2 sequences (alley_2, market_2); pick one with --sequence")]:
+        assert main(["eval-recon", "--pred", str(out), "--dataset", "sintel", "--root", str(root), *args]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["eval-recon", "--pred", str(out), "--dataset", "sintel"]) == 2
+    assert "needs --root" in capsys.readouterr().err

@@ -73,7 +73,7 @@ def _run_reconstruction(args, cfg) -> int:
         raise UserError("--out DIR is required to write a report (or use --check alone)")
     gt = None
     if args.gt:
-        from c4d_pipeline.cli_eval_recon import pick_scene
+        from c4d_pipeline.eval_recon import pick_scene
 
         gt = pick_scene(args.gt, args.scene_index)
     gt_name = ""

@@ -23,9 +23,9 @@ from c4d_core import draw, geometry
 from c4d_core.errors import UserError
 from c4d_core.files import make_folder, write_json
 from c4d_core.video import write_image, write_video
-from c4d_pipeline.cli_eval_recon import read_reconstruction, scene_frame_indices
 from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
-from c4d_pipeline.outputs import read_tum
+from c4d_pipeline.eval_recon import scene_frame_indices
+from c4d_pipeline.outputs import read_reconstruction, read_tum
 
 MARKER_FILES = ("poses_tum.txt", "pointmaps.npz", "report.json")  # any one marks a reconstruction
 CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
