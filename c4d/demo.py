@@ -141,7 +141,7 @@ class Demo:
         from c4d_pipeline.flow import build_flow
         from c4d_pipeline.outputs import read_reconstruction
         from c4d_pipeline.pipeline import reconstruct
-        from c4d_pipeline.pointmaps import GroundTruthPointmaps
+        from c4d_pipeline.pointmap_sources import build_pointmaps
         from datagen.shards import read_scenes
         from dynpt.inference import load_tracker
 
@@ -157,10 +157,10 @@ class Demo:
             track_result = tracker.track(scene.rgb)
             name = f"scene-{index:03d}"
             metrics[name], outputs[name] = {}, {}
-            for variant, extra in (("C4D", []), ("GA only", RUNS["GA only"])):
-                cfg = load_config("c4d", r.config, overrides=[*r.overrides, *extra])
+            for variant in ("C4D", "GA only"):  # rows of the ablation table (their overrides)
+                cfg = load_config("c4d", r.config, overrides=[*r.overrides, *RUNS[variant]])
                 target = folder / name / variant.lower().replace(" ", "-")
-                reconstruct(scene.rgb, GroundTruthPointmaps.from_config(scene, cfg.gt_pointmaps),
+                reconstruct(scene.rgb, build_pointmaps("gt", cfg, scene=scene),
                             build_flow(r.flow), track_result, cfg, target,
                             inputs={"scene": f"{source} #{index}",
                                     "pointmaps": "ground truth + noise + static-world bias",
