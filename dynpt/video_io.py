@@ -16,6 +16,7 @@ import numpy as np
 
 from c4d_core import video
 from c4d_core.errors import UserError
+from c4d_core.schema import MAX_SIDE, MIN_SIDE
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +103,9 @@ def resize_long_side(video: np.ndarray, size: int | None = None, max_size: int |
     if not size and not max_size:
         return video  # the tracker itself names the smallest frame it can take
     asked = size or max_size
-    if asked < 8:
-        raise UserError(f"--size/--max-size {asked} is too small; give at least 8 pixels")
+    if not MIN_SIDE <= asked <= MAX_SIDE:
+        raise UserError(f"--size/--max-size {asked} is out of range; give {MIN_SIDE} to {MAX_SIDE} "
+                        "pixels")
     target = size if size else min(max_size, max(H, W))
     if target == max(H, W):
         return video

@@ -192,3 +192,17 @@ def test_track_accepts_a_video_path(tmp_path):
     video_path = write_video(tmp_path / "clip.mp4", smooth_video(T=5, H=32, W=32), fps=10)
     result = Tracker(make_model()).track(str(video_path), grid_size=16)
     assert result.tracks.shape == (5, 8, 2)
+
+
+def test_working_size_is_range_checked_and_optional():
+    """--size/--max-size: unchanged without either, refused outside 8..4096 (a huge size once
+    ended in an out-of-memory traceback), never enlarged by --max-size."""
+    from dynpt.video_io import resize_long_side
+
+    video = np.zeros((2, 5, 6, 3), np.uint8)
+    assert resize_long_side(video) is video  # the tracker names its own minimum frame size
+    for size in (7, 100000):
+        with pytest.raises(UserError, match=f"{size} is out of range; give 8 to 4096"):
+            resize_long_side(video, size=size)
+    assert resize_long_side(np.zeros((2, 20, 40, 3), np.uint8), size=20).shape == (2, 10, 20, 3)
+    assert resize_long_side(np.zeros((2, 20, 40, 3), np.uint8), max_size=80).shape == (2, 20, 40, 3)
