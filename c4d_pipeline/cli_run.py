@@ -71,6 +71,9 @@ def load_run_config(args: argparse.Namespace):
 
 
 def _check_file(path: str, what: str, flag: str) -> None:
+    if path and Path(path).is_dir():
+        raise UserError(f"{what} {path!r} is a folder, not a file; give the checkpoint file inside "
+                        f"it with {flag}")
     if path and not Path(path).is_file():
         raise UserError(f"{what} {path!r} does not exist; give the path of a local file with {flag}")
 
@@ -90,8 +93,8 @@ class _FlowWithProgress:
 
 
 def run(args: argparse.Namespace) -> int:
-    from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
     from c4d_pipeline.flow import build_flow
+    from c4d_pipeline.pointmap_sources import build_pointmaps
     from c4d_pipeline.pipeline import reconstruct
     from c4d_pipeline.scene_graph import graph_from_config
     from c4d_pipeline.video_input import load_video_input
@@ -112,8 +115,7 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     log.info("loading the pointmap network from %s", cfg.pointmaps.checkpoint)
-    source = Dust3rPointmaps.from_checkpoint(cfg.pointmaps.checkpoint, cfg.device, cfg.pointmaps.batch,
-                                             progress=True, precision=cfg.pointmaps.precision)
+    source = build_pointmaps(f"dust3r:{cfg.pointmaps.checkpoint}", cfg, device=cfg.device, progress=True)
     tracker = None
     if cfg.tracker.checkpoint:
         from dynpt.inference import load_tracker

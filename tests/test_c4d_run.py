@@ -123,6 +123,8 @@ def test_bad_inputs_fail_fast_with_one_line(inputs, tmp_path, capsys):
     cases = [
         (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(tmp_path / "none.pth")], "does not exist"),
         (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--tracker", "x.pt"], "tracker checkpoint"),
+        (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(folder)], "is a folder, not a file"),
+        (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--tracker", str(folder)], "is a folder"),
         (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(video)], "cannot read checkpoint"),
         (["run", str(corrupt), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--size", "64"], "corrupt"),
         (["run", str(truncated), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--size", "64"], "truncated"),
