@@ -47,7 +47,7 @@ def disk_error(path: str | os.PathLike, exc: OSError, verb: str = "write") -> Us
     if exc.errno == errno.ENAMETOOLONG:
         return UserError(f"cannot {verb} {path}: the name is too long for the file system (at most "
                          "255 bytes per name); choose a shorter path")
-    target = Path(path)
+    target = Path(exc.filename if isinstance(exc.filename, (str, os.PathLike)) else path)
     nearest, missing = target, None  # the nearest existing entry, the missing folder below it
     for entry in (target, *target.parents):
         if _lstat_or_none(entry) is not None:
@@ -65,8 +65,8 @@ def disk_error(path: str | os.PathLike, exc: OSError, verb: str = "write") -> Us
         if nearest != target.parent:
             return UserError(f"cannot {verb} {path}: the folder {missing} does not exist; "
                              "create it or choose another output folder")
-        return UserError(f"cannot {verb} {path}: no such file, and its folder {nearest} does not "
-                         "accept new ones (a system folder?); check the path or choose another "
+        return UserError(f"cannot {verb} {path}: {target} does not exist and cannot be created "
+                         f"in {nearest} (a system folder?); check the path or choose another "
                          "output folder")
     return UserError(f"cannot {verb} {path}: {exc.strerror or exc}; choose a writable output folder")
 

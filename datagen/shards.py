@@ -29,6 +29,7 @@ import numpy as np
 
 from c4d_core.errors import UserError
 from c4d_core.files import disk_error, json_default, remove_quietly
+from datagen.jobs import SHARD_PATTERN
 from datagen.scene import Scene
 
 FORMAT_VERSION = 3  # 3: a `checksums.json` member; 2: rgb as raw `rgb.npy` (~50x faster than PNG)
@@ -243,11 +244,17 @@ def verify_checksums(sample: dict[str, Any]) -> bool:
 
     Members not read (skipped by `iter_samples(fields=...)`) are only checked for presence, via
     the `__members__` list `iter_samples` adds. Raises `UserError` naming the sample and member
-    on a missing member or a checksum mismatch.
+    on a missing member or a checksum mismatch, and on a missing `checksums.json` where the
+    sample's `__format__` (from its dataset file) is 3 or newer, which requires one.
     """
-    if CHECKSUMS not in sample:
-        return False
     key, where = sample.get("__key__", "?"), _where(sample)
+    if CHECKSUMS not in sample:
+        version = sample.get("__format__")
+        if isinstance(version, int) and version >= 3:
+            raise UserError(f"scene {key!r}{where} lacks its member {CHECKSUMS!r}, which its "
+                            f"dataset file requires (format {version}; deleted from the shard?); "
+                            f"{REGENERATE}")
+        return False
     try:
         sums = json.loads(bytes(sample[CHECKSUMS]).decode("utf-8"))["crc32"]
         sums = {str(k): str(v) for k, v in sums.items()}
@@ -447,18 +454,25 @@ def list_shards(source: str | Path | Sequence[str | Path], split: str | None = N
 
 
 def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iterator[dict[str, Any]]:
-    """Webdataset samples of one shard, in tar order, each with `__key__`, `__url__` and
-    `__members__` (the suffixes of all its members, read or not).
+    """Webdataset samples of one shard, in tar order, each with `__key__`, `__url__`,
+    `__members__` (the suffixes of all its members, read or not) and, where the shard's dataset
+    file (`dataset_record`) gives it, `__format__` (its format version).
 
     `fields`: read only the members of these Scene fields (and those `decode_scene` always needs);
     the others are skipped by seeking past them, not read (`checksums.json` is always read).
     Default: every member.
-    Raises `UserError` naming the shard and the sample key if the tar is truncated or corrupt.
+    Raises `UserError` naming the shard and the sample key if the tar is truncated or corrupt,
+    after yielding the last scene read in full (its `meta.json`, the last member, is complete).
     """
     shard = str(shard)
+    if os.path.isdir(shard):
+        raise UserError(f"shard {shard} is a folder, not a shard (a .tar file); move it out of "
+                        "the shard set or rerun `c4d datagen`")
+    version = dataset_record(shard).get("format_version")
     wanted = None if fields is None else {*fields, *ALWAYS_READ}
     sample: dict[str, Any] = {}
     name = ""
+    error: UserError | None = None
     try:
         with tarfile.open(shard, mode="r:") as tar:  # seekable: skipped members are not read
             for member in tar:
@@ -469,28 +483,88 @@ def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iter
                 if sample and key != sample["__key__"]:
                     yield sample
                     sample = {}
-                sample.setdefault("__key__", key)
-                sample.setdefault("__url__", shard)
-                sample.setdefault("__members__", []).append(suffix)
+                if not sample:
+                    sample = {"__key__": key, "__url__": shard, "__members__": []}
+                    if isinstance(version, int):
+                        sample["__format__"] = version
+                sample["__members__"].append(suffix)
                 if wanted is None or suffix == CHECKSUMS or suffix.partition(".")[0] in wanted:
                     sample[suffix] = tar.extractfile(member).read()
             end = tar.offset  # where the end-of-archive marker (two zero blocks) must follow
         with open(shard, "rb") as f:
             f.seek(end)
             if f.read(2 * tarfile.BLOCKSIZE) != bytes(2 * tarfile.BLOCKSIZE):
-                raise UserError(
-                    f"shard {shard} is truncated or corrupt after member {name!r} (scene "
-                    f"{name.partition('.')[0]!r}): no end-of-archive marker follows; delete it "
+                error = UserError(
+                    f"shard {shard} is truncated or corrupt after member {name!r}: no "
+                    "end-of-archive marker follows, so what came after it is lost; delete it "
                     "and rerun `c4d datagen`"
                 )
     except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
         where = f"at member {name!r}" if name else "at its start"
-        raise UserError(
+        error = UserError(
             f"shard {shard} is corrupt or truncated {where} (scene "
             f"{(name.partition('.')[0] or '?')!r}): {exc}; delete it and rerun `c4d datagen`"
-        ) from exc
-    if sample:
-        yield sample
+        )
+        error.__cause__ = exc
+    if sample and (error is None or member_suffix("meta") in sample):
+        yield sample  # the last scene; before an error only if read in full
+    if error is not None:
+        raise error
+
+
+DATASET_FILE = "dataset-{split}.json"  # written by `c4d datagen` beside its shards
+
+
+def _split_and_index(shard: str | Path) -> tuple[str, int] | None:
+    """(split, shard index) of a shard named as `c4d datagen` names them, else None."""
+    split, _, index = Path(shard).name.removesuffix(".tar").rpartition("-")
+    return (split, int(index)) if split and index.isdigit() else None
+
+
+def _read_dataset_file(folder: Path, split: str) -> dict[str, Any]:
+    try:
+        record = json.loads((folder / DATASET_FILE.format(split=split)).read_text())
+    except (OSError, ValueError):
+        return {}
+    return record if isinstance(record, dict) else {}
+
+
+def dataset_record(shard: str | Path) -> dict[str, Any]:
+    """The dataset file (`dataset-{split}.json`: format_version, num_scenes, scenes_per_shard,
+    num_shards, ...) beside `shard`; {} if there is none or it cannot be read."""
+    parsed = _split_and_index(shard)
+    return {} if parsed is None else _read_dataset_file(Path(shard).parent, parsed[0])
+
+
+def scenes_in_shard(shard: str | Path) -> int | None:
+    """How many scenes `shard` was written with, from its dataset file; None if unknown."""
+    parsed, record = _split_and_index(shard), dataset_record(shard)
+    try:
+        count = min(int(record["scenes_per_shard"]),
+                    int(record["num_scenes"]) - parsed[1] * int(record["scenes_per_shard"]))
+    except (KeyError, TypeError, ValueError):
+        return None
+    return count if count > 0 else None
+
+
+def lost_scenes(shard: str | Path, read: int) -> int:
+    """How many scenes an unreadable `shard` lost after `read` of them were read: the rest of
+    the scenes its dataset file gives it, at least 1 (1 when unknown)."""
+    return max(1, (scenes_in_shard(shard) or 0) - read)
+
+
+def missing_shards(shards: Sequence[str | Path]) -> list[Path]:
+    """The shards that the dataset files beside `shards` list (`num_shards` of them, named by
+    SHARD_PATTERN) but that do not exist, in order."""
+    missing: list[Path] = []
+    for folder, split in sorted({(Path(s).parent, parsed[0]) for s in shards
+                                 if (parsed := _split_and_index(s)) is not None}):
+        num_shards = _read_dataset_file(folder, split).get("num_shards")
+        for index in range(num_shards if isinstance(num_shards, int) else 0):
+            path = folder / SHARD_PATTERN.format(split=split, shard=index)
+            if not path.exists():
+                missing.append(path)
+    return missing
 
 
 def read_scenes(

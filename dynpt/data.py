@@ -16,7 +16,8 @@ the seed and the position; `position` lets `--resume` continue exactly: the work
 does not decode) the samples already taken from the current epoch of each source.
 
 Bad data (webdataset's warn-and-continue): a corrupt or incomplete sample, or the unreadable rest
-of a truncated shard, is skipped with a warning naming shard and sample and counted; every sample
+of a truncated shard, is skipped with a warning naming shard and sample and counted (the rest of a
+shard as the scenes it lost, when the dataset file beside it tells; else as one); every sample
 carries `counts` int64 [read, bad] of its loader split. A split stops with a `UserError` once
 more than `data.max_bad_fraction` of its samples are bad (counted from 100 samples on).
 """
@@ -33,7 +34,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from c4d_core.errors import UserError
 from datagen.scene import Scene
-from datagen.shards import decode_scene, iter_samples, list_shards
+from datagen.shards import decode_scene, iter_samples, list_shards, lost_scenes
 from dynpt.augment import augment_clip
 from dynpt.device import pin_memory
 
@@ -171,16 +172,22 @@ class ShardStream(IterableDataset):
         rng = _rng(self.seed, source, epoch, split, 1)
         index = 0
         for shard_id in mine:
+            read = 0
             try:
                 for sample in iter_samples(shards[shard_id], TRAIN_FIELDS):
-                    index += 1
+                    index, read = index + 1, read + 1
                     if not by_shard and (index - 1) % num_splits != split:
                         continue
                     buffer.append(sample)
                     if len(buffer) >= self.cfg.shuffle_buffer:
                         yield buffer.pop(int(rng.integers(len(buffer))))
             except UserError as exc:  # a truncated or damaged tar: its rest is lost
-                self._bad(exc)
+                lost = lost_scenes(shards[shard_id], read)
+                mine_lost = lost if by_shard else sum(
+                    i % num_splits == split for i in range(index, index + lost))
+                index += lost  # the samples after the shard keep their splits
+                self._counts[0] += mine_lost  # counted as read: they were due
+                self._bad(exc, mine_lost)
         while buffer:
             yield buffer.pop(int(rng.integers(len(buffer))))
 
@@ -199,11 +206,14 @@ class ShardStream(IterableDataset):
                                 f"{num_splits}; use fewer workers/GPUs or more scenes")
             epoch, taken = epoch + 1, 0
 
-    def _bad(self, exc: UserError) -> None:
-        """Count and report one bad sample (or unreadable shard rest); stop past the limit."""
-        read, bad = self._counts[0], self._counts[1] + 1
+    def _bad(self, exc: UserError, count: int = 1) -> None:
+        """Count and report `count` bad samples (one, or the lost rest of an unreadable shard);
+        stop past the limit."""
+        if count == 0:  # the lost samples were another split's
+            return
+        read, bad = self._counts[0], self._counts[1] + count
         self._counts[1] = bad
-        log.warning("skipping bad training data (%d bad of %d samples read): %s", bad, read, exc)
+        log.warning("skipping bad training data (%d of %d samples bad so far): %s", bad, read, exc)
         if too_many_bad(bad, read, float(self.cfg.max_bad_fraction)):
             raise UserError(
                 f"{bad} of {read} training samples are bad, more than data.max_bad_fraction="

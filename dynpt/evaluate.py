@@ -21,7 +21,7 @@ import numpy as np
 from c4d_core.draw import contact_sheet, draw_tracks_enlarged
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
-from datagen.shards import decode_scene, iter_samples, list_shards
+from datagen.shards import decode_scene, iter_samples, list_shards, lost_scenes
 from dynpt.augment import resize_clip
 from dynpt.metrics import dynamic_accuracy, paired_bootstrap_interval, tapvid_metrics
 from dynpt.tapvid_data import read_tapvid, sample_queries
@@ -75,8 +75,9 @@ def load_eval_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list
         skipped.append(str(exc))
 
     for shard in list_shards(source):
+        read = 0
         try:
-            for raw in iter_samples(shard, EVAL_FIELDS):
+            for read, raw in enumerate(iter_samples(shard, EVAL_FIELDS), 1):
                 if eval_cfg.num_scenes and len(items) >= eval_cfg.num_scenes:
                     return items
                 try:
@@ -87,6 +88,7 @@ def load_eval_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list
                 items.append(scene_item(scene, len(items) + len(skipped), eval_cfg))
         except UserError as exc:  # a truncated or damaged tar: its rest is lost
             skip(exc)
+            skipped.extend([str(exc)] * (lost_scenes(shard, read) - 1))  # one per scene lost
     return items
 
 

@@ -190,8 +190,15 @@ class CheckResult:
 
 
 def check_dataset(source, cfg, split: str | None = None, progress: bool = True) -> CheckResult:
-    """Decode and validate every sample of `source`; never stops at the first problem."""
+    """Decode and validate every sample of `source`; never stops at the first problem. A shard
+    that the dataset file of a `source` folder lists but that is absent is a problem too."""
     problems: list[tuple[str, str, str]] = []
+    if isinstance(source, (str, Path)) and Path(source).is_dir():
+        for path in shards.missing_shards(shards.list_shards(source, split)):
+            held = shards.scenes_in_shard(path)
+            problems.append((str(path), "?", f"the shard is missing ({held or '?'} scenes), "
+                             "though the dataset file beside it lists it; rerun the same "
+                             "`c4d datagen` command to write it"))
     count = unverified = 0
     for sample in tqdm(iter_dataset(source, split), desc="check", unit="scene", disable=not progress):
         count += 1
