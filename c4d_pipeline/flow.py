@@ -59,6 +59,8 @@ def build_flow(spec: str, scene: Scene | None = None, device=None) -> FlowEstima
     if name == "raft":
         if not arg:
             raise UserError("flow 'raft' needs weights: write 'raft:PATH/TO/raft.pth'")
+        if Path(arg).is_dir():
+            raise UserError(f"RAFT weights {arg!r} is a folder, not a file; pass the .pth file inside it")
         if not Path(arg).is_file():
             raise UserError(f"RAFT weights {arg!r} do not exist; give the path of a local .pth file")
         from c4d_pipeline.raft import RaftFlow  # torch model: imported only when asked for

@@ -10,7 +10,7 @@ import torch
 
 from c4d.cli import main
 from c4d_core.config import load_config
-from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
+from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.video_input import dust3r_resize, load_video_input, plan_preprocessing
 from datagen.generate import generate_scene
 from dynpt.checkpoint import save_checkpoint
@@ -130,6 +130,7 @@ def test_bad_inputs_fail_fast_with_one_line(inputs, tmp_path, capsys):
         (["run", str(truncated), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--size", "64"], "truncated"),
         (["run", str(video), "optim.nope=1", "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt)], "unknown config key"),
         (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--flow", "raft:none.pth"], "RAFT weights"),
+        (["run", str(video), "--out", str(tmp_path / "o"), "--pointmaps", str(ckpt), "--flow", f"raft:{folder}"], "is a folder, not a file"),
     ]
     for argv, message in cases:
         assert main(argv) == 2, argv
