@@ -33,8 +33,8 @@ from datagen.shards import iter_samples
 from dynpt.data import ShardStream
 from tests.test_dynpt_data import DATA
 from tests.test_faults import inputs  # noqa: F401 (a fixture)
-from tests.test_faults import (TINY_DATAGEN, assert_one_line_error, c4d, command, delete_member,
-                               mounted, no_temporaries, shard_copy)
+from tests.test_faults import (COMMANDS, TINY_DATAGEN, assert_one_line_error, c4d, command,
+                               delete_member, mounted, no_temporaries, shard_copy)
 
 pytestmark = pytest.mark.faults
 
@@ -83,7 +83,7 @@ def test_a_codec_opencv_lacks_is_one_line(tmp_path, capsys, inputs, monkeypatch)
     assert no_temporaries(out)
 
 
-@pytest.mark.parametrize("name", ["inspect", "track", "train"])
+@pytest.mark.parametrize("name", COMMANDS)
 def test_a_name_too_long_is_one_line(tmp_path, capsys, inputs, name):
     out = tmp_path / ("x" * 300)
     assert_one_line_error(main(command(name, out, inputs)), capsys.readouterr().err,
@@ -149,7 +149,7 @@ def test_an_unreadable_shard_counts_as_the_scenes_it_held(tmp_path, caplog, inpu
     stream = iter(ShardStream([shards], [1.0], data, seed=5))
     with caplog.at_level(logging.WARNING, logger="dynpt.data"):
         samples = [next(stream) for _ in range(3)]
-    warned = [r.getMessage() for r in caplog.records if "skipping bad training data" in r.getMessage()]
+    warned = [m for m in caplog.messages if "skipping bad training data" in m]
     assert warned, caplog.text
     bad, read = map(int, re.search(r"\((\d+) of (\d+) samples bad so far\)", warned[0]).groups())
     assert bad == 3 and read >= 3  # never "1 bad of 0 samples"
