@@ -1,9 +1,11 @@
-"""Every command line of README.md and docs/TRAINING.md runs as written, at toy sizes.
+"""Every command line of README.md, docs/*.md and docs/results/*.md runs as written, at toy sizes,
+or is listed in `NOT_RUN` with the reason.
 
 The lines come from the documents' ```bash blocks (backslash continuations joined, comments
 dropped) and run in document order in an empty folder per document holding only a link to the
 repository's `configs/` (so `--config configs/dynpt/tiny-cpu.yaml` resolves as in a clone's
-root). The documented mapping from "as written" to "at toy sizes here":
+root); `.venv/bin/c4d` is `c4d`, paths under `/tmp/` are under that folder, and a `printf ... >
+FILE` line runs in bash. The documented mapping from "as written" to "at toy sizes here":
 
 - sizes: `c4d datagen` gets `--num-scenes 4 --workers 1 --resolution 32x32 --frames 12`;
   training, evaluation and reconstruction lines get the key=value overrides of `TOY` appended
@@ -12,10 +14,12 @@ root). The documented mapping from "as written" to "at toy sizes here":
 - placeholders for the user's own files (`_placeholders`): `video.mp4` is the first val scene as
   a video, a DUSt3R checkpoint is a tiny official-layout network whose points lie in front of the
   camera (`test_c4d_run.tiny_network`; a few steps of `c4d pretrain-pointmaps` do not give one),
-  TAP-Vid pickles are toy ones, `data.sources=[...]` is the first train set;
+  TAP-Vid pickles are toy ones, `data.sources=[...]` is the first train set, CoTracker3's
+  released file (`cotracker3:weights/scaled_offline.pth`) is one in its released layout and size
+  with random weights (tests/cotracker3_layout.py);
 - `[a|b]` optional groups are taken with their first alternative;
-- not run here: `make demo` / `make test` (tests/test_demo.py and this suite) and lines that need
-  a cluster's variables (`$NODE_RANK`).
+- not run here: the lines `NOT_RUN` matches, each with its reason (a fast test checks that every
+  line is either run or listed, so a new line needs one or the other).
 A line whose input a later line makes (the docs are not always in dependency order) is retried
 after the others; what still fails is reported with its one-line error.
 """
@@ -37,7 +41,7 @@ import numpy as np
 import pytest
 import torch
 
-from c4d.cli import main
+from c4d.cli import SUBCOMMANDS, main
 from test_c4d_run import ARGS, tiny_network
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,6 +59,25 @@ TOY = {
 }
 DATAGEN_TOY = ["--num-scenes", "4", "--workers", "1", "--resolution", "32x32", "--frames", "12"]
 DUST3R = ("DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth", "weights/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth")
+# the documents and the `data.sources=[...]` each one's lines get
+DOCS = {"README.md": "data/movi-e", "docs/TRAINING.md": "data/movi-e/train",
+        **{str(p.relative_to(ROOT)): "data/movi-e" for p in sorted(ROOT.glob("docs/*.md"))
+           if p.name != "TRAINING.md"},
+        **{str(p.relative_to(ROOT)): "data/movi-e" for p in sorted(ROOT.glob("docs/results/*.md"))}}
+# (regular expression searched in a line, why such lines are not run here); the first match wins
+NOT_RUN = [
+    (r"^make ", "make demo / make test: tests/test_demo.py and this suite"),
+    (r"^sbatch ", "a Slurm cluster's job array"),
+    (r"benchmarks/device_check\.py", "tests/test_device_check.py runs it (--cpu)"),
+    (r"benchmarks/", "a measurement or evaluation script: minutes at its documented sizes (its "
+     "tables are in docs/PERFORMANCE.md, docs/perf/, docs/results/)"),
+    (r"-m c4d_pipeline\.ablation", "C4D ablations over several scenes: minutes even at 32x32 (their "
+     "times are in docs/results/c4d.md); the optimiser itself: tests/test_c4d_optimize.py"),
+    (r"^\S*c4d demo\b|demo_out/", "`c4d demo` or its output (make demo): tests/test_demo.py"),
+    (r"^git ", "changes the clone itself (a worktree of an old commit, for bench_threads.py --before)"),
+    (r"\$", "needs shell variables: a loop's, a line's above (not run) or a cluster's ($NODE_RANK)"),
+    (r"data256/", "its input is made by a shell loop above (not run)"),
+]
 
 
 def command_lines(doc: Path) -> list[str]:
@@ -68,13 +91,20 @@ def command_lines(doc: Path) -> list[str]:
     return lines
 
 
+def not_run_reason(line: str) -> str | None:
+    """Why `line` is not run here (`NOT_RUN`), or None if it is."""
+    return next((why for pattern, why in NOT_RUN if re.search(pattern, line)), None)
+
+
 def _toy_argv(line: str, sources: str) -> list[str] | None:
     """argv of `line` at toy sizes (see the module docstring), or None if it is not run here;
     `sources` replaces the `[...]` of `data.sources=[...]`."""
-    if line.startswith("make ") or "$" in line:
+    if not_run_reason(line):
         return None
-    if "cotracker3:" in line:  # needs CoTracker3's released file (25 M parameters): not made here yet
-        return None
+    line = line.replace("/tmp/", "tmp/")
+    if line.startswith("printf "):
+        return ["bash", "-c", line]
+    line = re.sub(r"^\.venv/bin/c4d ", "c4d ", line)
     line = re.sub(r"\[(--[^\]]*)\]", lambda m: m.group(1).split("|")[0], line)  # [--flow dis|raft:..]
     line = line.replace("data.sources=[...]", f"data.sources=[{sources}]")
     argv = shlex.split(line)
@@ -93,8 +123,15 @@ def _toy_argv(line: str, sources: str) -> list[str] | None:
     return argv + TOY.get(argv[0], [])
 
 
-def _placeholders(folder: Path) -> None:
+def _placeholders(folder: Path, line: str) -> None:
     """Make the files that stand for the user's own, once their sources exist."""
+    released = re.search(r"cotracker3:(\S+)", line)
+    if released and not (folder / released[1]).exists():
+        from c4d_core.config import load_config
+        from dynpt.model import plain_config
+        from tests.cotracker3_layout import write_released
+
+        write_released(folder / released[1], plain_config(load_config("dynpt", "model/cotracker3-offline").model))
     for name in DUST3R:
         if not (folder / name).exists():
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
@@ -125,6 +162,10 @@ def _placeholders(folder: Path) -> None:
 
 def _run(argv: list[str], folder: Path) -> tuple[int, str]:
     """(exit code, last stderr line) of one line, run in `folder`."""
+    if argv[0] == "bash":
+        (folder / "tmp").mkdir(exist_ok=True)
+        proc = subprocess.run(argv, cwd=folder, capture_output=True, text=True, timeout=60)
+        return proc.returncode, proc.stderr.strip()
     if argv[0] == sys.executable:  # torchrun
         env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
         proc = subprocess.run(argv, cwd=folder, env=env, capture_output=True, text=True, timeout=900)
@@ -142,20 +183,37 @@ def _run(argv: list[str], folder: Path) -> tuple[int, str]:
     return code, (lines[-1] if lines else "")
 
 
+def test_every_line_is_run_or_listed():
+    """Each documented line maps to a toy command or has a `NOT_RUN` reason; every reason is used."""
+    used = set()
+    for doc, sources in DOCS.items():
+        for line in command_lines(ROOT / doc):
+            reason = not_run_reason(line)
+            used.add(reason)
+            if reason is None:  # a c4d subcommand, torchrun or printf (_toy_argv refuses others)
+                assert _toy_argv(line, sources)[0] in (*SUBCOMMANDS, sys.executable, "bash"), (doc, line)
+    assert {why for _, why in NOT_RUN} <= used, "a NOT_RUN reason no line needs any more"
+
+
+RUN_DOCS = [doc for doc, sources in DOCS.items()
+            if any(not_run_reason(line) is None for line in command_lines(ROOT / doc))]
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(3600)
-@pytest.mark.parametrize("doc, sources", [("README.md", "data/movi-e"),
-                                          ("docs/TRAINING.md", "data/movi-e/train")])
-def test_documented_commands_run_as_written(doc, sources, tmp_path):
+@pytest.mark.parametrize("doc", RUN_DOCS)
+def test_documented_commands_run_as_written(doc, tmp_path):
+    sources = DOCS[doc]
     pending = [(line, argv) for line in command_lines(ROOT / doc)
                if (argv := _toy_argv(line, sources)) is not None]
-    assert len(pending) >= 10, "the command extraction found too few lines"
+    assert len(pending) >= (10 if doc in ("README.md", "docs/TRAINING.md") else 1), \
+        "the command extraction found too few lines"
     (tmp_path / "configs").symlink_to(ROOT / "configs")
     failures: dict[str, str] = {}
     while pending:
         retry = []
         for line, argv in pending:
-            _placeholders(tmp_path)
+            _placeholders(tmp_path, line)
             code, message = _run(argv, tmp_path)
             if code:
                 retry.append((line, argv))
