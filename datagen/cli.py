@@ -35,11 +35,12 @@ from tqdm import tqdm
 import datagen
 from c4d_core.config import available_presets, flag_overrides, load_config, to_dict, to_yaml
 from c4d_core.errors import UserError
-from c4d_core.files import disk_error, write_json, write_text
+from c4d_core.files import make_folder, write_json, write_text
 from c4d_core.schema import RULES
 from c4d_core.system import configure_threads, init_worker_threads, require_egl
 from datagen.jobs import SHARD_PATTERN, ShardPlan, resolve_task
-from datagen.shards import FORMAT_VERSION, KEY_PATTERN, ShardWriter, encode_scene, scene_key
+from datagen.shards import (DATASET_FILE, FORMAT_VERSION, KEY_PATTERN, ShardWriter, encode_scene,
+                            scene_key)
 
 log = logging.getLogger(__name__)
 
@@ -128,11 +129,8 @@ def claim_directory(out: Path, record: dict[str, Any], plan: ShardPlan) -> None:
     A dataset file of other settings is only replaced while OUT holds no complete shard of it
     (a run that failed before its first shard claimed nothing); otherwise it is refused.
     """
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise disk_error(out, exc) from exc
-    path = out / f"dataset-{record['split']}.json"
+    make_folder(out)
+    path = out / DATASET_FILE.format(split=record["split"])
     holds_data = any(out.glob(f"{plan.split}-*.tar"))  # finished shards of SHARD_PATTERN
     if path.is_file() and holds_data:
         try:
