@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
+from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
 
 
 def seconds_per_pair(cfg: Dust3rConfig, hw: tuple[int, int], pairs: int, batch: int, repeats: int) -> float:

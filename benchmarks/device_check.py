@@ -214,7 +214,7 @@ def dust3r_forward(out: Path, sizes: Sizes) -> None:
     import numpy as np
     import torch
 
-    from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
+    from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
     from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
     from c4d_pipeline.pointmap_training import save_official
     from dynpt.device import peak_memory, reset_peak_memory

@@ -23,10 +23,10 @@ import torch
 from tqdm import tqdm
 
 from c4d_core.errors import UserError
-from c4d_pipeline.dust3r_net import Dust3rNet, load_dust3r
 from c4d_pipeline.pointmaps import PairwisePointmaps, sanitize
 from dynpt.device import (autocast, bf16_supported, free_memory, pair_batch_size, pin_memory,
                           pointmap_autocast_dtype)
+from dynpt.dust3r.net import Dust3rNet, load_dust3r
 
 log = logging.getLogger(__name__)
 

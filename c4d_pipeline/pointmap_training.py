@@ -38,10 +38,10 @@ from omegaconf import OmegaConf
 from c4d_core.config import to_dict
 from c4d_core.errors import UserError
 from c4d_core.files import append_line, write_text
-from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.ground_truth import GroundTruthPointmaps
 from datagen.shards import read_scenes
 from dynpt.checkpoint import read_tensor_file, save_atomic
+from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
 from dynpt.train import remove_temporaries, repair_log
 
 log = logging.getLogger(__name__)
@@ -132,7 +132,7 @@ def confidence_regression_loss(pred1, conf1, pred2, conf2, gt1, gt2, alpha: floa
 
 
 def constructor_string(cfg: Dust3rConfig, image_size: tuple[int, int]) -> str:
-    """`args.model` of an official file describing `cfg` (parsed back by dust3r_checkpoint)."""
+    """`args.model` of an official file describing `cfg` (parsed back by dynpt.dust3r.checkpoint)."""
     return (f"AsymmetricCroCo3DStereo(pos_embed='RoPE{cfg.rope_freq:g}', img_size={tuple(image_size)}, "
             f"head_type='{cfg.head_type}', output_mode='pts3d', depth_mode=('exp', -inf, inf), "
             f"conf_mode=('exp', 1, inf), enc_embed_dim={cfg.enc_embed_dim}, enc_depth={cfg.enc_depth}, "

@@ -28,12 +28,13 @@ import torch.nn.functional as F
 
 from c4d_core.errors import UserError
 from c4d_pipeline.flow_inputs import check_flow_inputs
-from dynpt.dust3r_checkpoint import read_checkpoint
+from dynpt.checkpoint import read_tensor_file
 
 log = logging.getLogger(__name__)
 
 CORR_LEVELS, CORR_RADIUS = 4, 4
 HIDDEN, CONTEXT = 128, 128
+WEIGHTS_HINT = "pass raft-things.pth / raft-sintel.pth or torchvision's raft_large weights"
 
 
 def _norm(kind: str, channels: int) -> nn.Module:
@@ -239,9 +240,13 @@ def from_torchvision_names(state: dict[str, torch.Tensor]) -> dict[str, torch.Te
     return out
 
 
-def load_raft(path: str | Path, iters: int = 20, map_location="cpu") -> RAFT:
+def load_raft(path: str | Path, iters: int = 20) -> RAFT:
     """RAFT-large with the weights of a local file (original or torchvision layout), eval mode."""
-    state = read_checkpoint(path, map_location).state_dict
+    state = read_tensor_file(Path(path), "RAFT", WEIGHTS_HINT, "download it again or pass another file")
+    if not isinstance(state, dict):
+        raise UserError(f"{str(path)!r} is not a RAFT-large checkpoint (a {type(state).__name__}, not a "
+                        f"state dict); {WEIGHTS_HINT}")
+    state = {k.removeprefix("module."): v for k, v in state.items() if isinstance(v, torch.Tensor)}
     if any(k.startswith("feature_encoder.") for k in state):
         state = from_torchvision_names(state)
     model = RAFT(iters)
@@ -251,8 +256,7 @@ def load_raft(path: str | Path, iters: int = 20, map_location="cpu") -> RAFT:
         missing, unexpected = ["(shapes differ)"], []
     if missing or unexpected:
         raise UserError(f"{str(path)!r} is not a RAFT-large checkpoint (missing {missing[:3]}, unexpected "
-                        f"{unexpected[:3]}); pass raft-things.pth / raft-sintel.pth or torchvision's "
-                        "raft_large weights (RAFT-small is not supported)")
+                        f"{unexpected[:3]}); {WEIGHTS_HINT} (RAFT-small is not supported)")
     return model.eval()
 
 

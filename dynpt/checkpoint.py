@@ -23,7 +23,7 @@ from torch import nn
 
 from c4d_core.errors import UserError
 from c4d_core.files import atomic_path, disk_error
-from dynpt.dust3r_checkpoint import load_failure, require_file
+from dynpt.dust3r.checkpoint import load_failure, require_file
 from dynpt.model import DynPT, build_model, plain_config
 
 log = logging.getLogger(__name__)

@@ -316,7 +316,7 @@ def build_model(model_cfg: Mapping, *, weights_from_state_dict: bool = False) ->
                         "model.encoder_3d.checkpoint=/path/to/DUSt3R_or_MASt3R_or_MonST3R.pth, "
                         "or train without it: --config paper-gpu-cnn-only")
     if enc.get("checkpoint") or enc.get("random_init"):
-        from dynpt.vit_encoder import Dust3rEncoder, load_dust3r_encoder
+        from dynpt.dust3r.vit_encoder import Dust3rEncoder, load_dust3r_encoder
 
         sizes = ("patch_size", "embed_dim", "depth", "num_heads", "mlp_ratio", "rope_freq")
         if enc.get("checkpoint") and not weights_from_state_dict:

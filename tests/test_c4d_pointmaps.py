@@ -105,7 +105,7 @@ def test_build_pointmaps_names_every_source_and_refuses_unknown_ones(dynamic_sce
     import torch
 
     from c4d_core.config import load_config
-    from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
+    from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
     from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
     from c4d_pipeline.pointmap_sources import POINTMAP_SOURCES, build_pointmaps
     from c4d_pipeline.pointmap_training import save_official

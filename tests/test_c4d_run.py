@@ -10,10 +10,10 @@ import torch
 
 from c4d.cli import main
 from c4d_core.config import load_config
-from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.video_input import dust3r_resize, load_video_input, plan_preprocessing
 from datagen.generate import generate_scene
 from dynpt.checkpoint import save_checkpoint
+from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
 from dynpt.model import build_model
 from dynpt.video_io import write_video
 

@@ -9,11 +9,11 @@ import torch.distributed as dist
 
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
-from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet
 from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps, pair_memory_bytes
 from dynpt import device as dev
 from dynpt import train as train_module
 from dynpt.data import ShardStream, make_loader
+from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
 from dynpt.inference import Tracker
 from dynpt.model import build_model
 from tests.dynpt_testdata import synthetic_shards

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from c4d_core.errors import UserError
-from c4d_pipeline.dust3r_net import Dust3rConfig, Dust3rNet, load_dust3r, postprocess
 from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps, to_network_input
 from c4d_pipeline.pointmaps import PointmapSource
+from dynpt.dust3r.net import Dust3rConfig, Dust3rNet, load_dust3r, postprocess
 
 TINY = dict(enc_embed_dim=32, enc_depth=2, enc_num_heads=2, dec_embed_dim=24, dec_depth=4, dec_num_heads=2)
 TINY_DPT = dict(dpt_layer_dims=(4, 8, 8, 16), dpt_feature_dim=8, dpt_last_dim=8)

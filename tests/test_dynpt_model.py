@@ -8,8 +8,8 @@ import torch
 
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
+from dynpt.dust3r.vit_encoder import Dust3rEncoder
 from dynpt.model import build_model
-from dynpt.vit_encoder import Dust3rEncoder
 
 
 

@@ -167,7 +167,7 @@ def test_an_unreadable_checkpoint_says_why_for_track_and_resume(tmp_path, capsys
 
 
 def test_random_bytes_as_dust3r_weights_are_not_unpickled(tmp_path, caplog):
-    from dynpt.dust3r_checkpoint import read_checkpoint
+    from dynpt.dust3r.checkpoint import read_checkpoint
 
     path = tmp_path / "dust3r.pth"
     damage(path, "random-bytes")
@@ -183,7 +183,7 @@ def test_random_bytes_as_dust3r_weights_are_not_unpickled(tmp_path, caplog):
 def test_a_folder_given_as_any_checkpoint_is_named_as_a_folder(tmp_path, capsys, tracker_inputs):
     from c4d_pipeline.raft import load_raft
     from dynpt.cotracker3_weights import read_state
-    from dynpt.dust3r_checkpoint import read_checkpoint
+    from dynpt.dust3r.checkpoint import read_checkpoint
     from dynpt.inference import load_tracker
 
     folder = tmp_path / "weights"

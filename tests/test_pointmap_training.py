@@ -10,11 +10,11 @@ import torch
 from c4d.cli import main
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
-from c4d_pipeline.dust3r_net import load_dust3r
 from c4d_pipeline.dust3r_pointmaps import Dust3rPointmaps
 from c4d_pipeline.pointmap_training import (confidence_regression_loss, exact_pair, load_scenes,
                                             sample_batch, train_pointmap_net)
 from c4d_core import geometry
+from dynpt.dust3r.net import load_dust3r
 from dynpt.model import build_model
 from tests.dynpt_testdata import generated_shards
 

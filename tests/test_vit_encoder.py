@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from c4d_core.errors import UserError
-from dynpt.dust3r_checkpoint import parse_constructor, read_checkpoint
-from dynpt.vit_encoder import Dust3rEncoder, RoPE2D, load_dust3r_encoder, patch_positions
+from dynpt.dust3r.checkpoint import parse_constructor, read_checkpoint
+from dynpt.dust3r.vit_encoder import Dust3rEncoder, RoPE2D, load_dust3r_encoder, patch_positions
 
 OFFICIAL_ARGS = ("AsymmetricCroCo3DStereo(pos_embed='RoPE100', patch_embed_cls='ManyAR_PatchEmbed', "
                  "img_size=(512, 512), head_type='dpt', output_mode='pts3d', "

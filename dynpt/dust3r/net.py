@@ -1,12 +1,12 @@
 """The DUSt3R pointmap network (AsymmetricCroCo3DStereo), loadable from official checkpoints.
 
-Two images go through the shared ViT encoder (`dynpt.vit_encoder.Dust3rEncoder`); two ViT-B-width
-decoders exchange information by cross-attention layer by layer; one head per view turns the
-decoder tokens into a pointmap (x, y, z per pixel, both views in view 1's camera frame) and a
-confidence. Parameter names are the official ones, so DUSt3R 224/512 linear and DPT, MonST3R and
-MASt3R files load with `load_dust3r(path)`:
+Two images go through the shared ViT encoder (`dynpt.dust3r.vit_encoder.Dust3rEncoder`); two
+ViT-B-width decoders exchange information by cross-attention layer by layer; one head per view
+turns the decoder tokens into a pointmap (x, y, z per pixel, both views in view 1's camera frame)
+and a confidence. Parameter names are the official ones, so DUSt3R 224/512 linear and DPT, MonST3R
+and MASt3R files load with `load_dust3r(path)`:
 
-  patch_embed / enc_blocks / enc_norm          encoder (see dynpt/vit_encoder.py)
+  patch_embed / enc_blocks / enc_norm          encoder (see dynpt/dust3r/vit_encoder.py)
   decoder_embed                                Linear enc_dim -> dec_dim
   dec_blocks.{i}, dec_blocks2.{i}              norm1, attn.{qkv,proj}, norm2, cross_attn.{projq,
                                                projk,projv,proj}, norm3, norm_y, mlp.{fc1,fc2}
@@ -31,9 +31,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from c4d_core.errors import UserError
-from dynpt.dust3r_checkpoint import OfficialCheckpoint, block_count, head_count, read_checkpoint
-from dynpt.vit_encoder import (LAYER_NORM_EPS, Attention, Dust3rEncoder, Mlp, RoPE2D, split_heads,
-                               encoder_kwargs)
+from dynpt.dust3r.checkpoint import OfficialCheckpoint, block_count, head_count, read_checkpoint
+from dynpt.dust3r.vit_encoder import (LAYER_NORM_EPS, Attention, Dust3rEncoder, Mlp, RoPE2D,
+                                      encoder_kwargs, split_heads)
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ Parameter names match the official DUSt3R, MASt3R and MonST3R checkpoints exactl
 (`patch_embed.proj.*`, `enc_blocks.{i}.{norm1,attn.qkv,attn.proj,norm2,mlp.fc1,mlp.fc2}.*`,
 `enc_norm.*`), so the encoder of any of those files loads with `load_dust3r_encoder(path)`.
 The building blocks (RoPE2D, Attention, Mlp) are shared with the full pointmap network in
-`c4d_pipeline/dust3r_net.py`.
+`dynpt/dust3r/net.py`.
 
 2-D RoPE (CroCo): each attention head's channels are split in two halves; the first half is
 rotated by the token's row index y, the second by its column index x. Within a half of D channels,
@@ -21,7 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from c4d_core.errors import UserError
-from dynpt.dust3r_checkpoint import (OfficialCheckpoint, block_count, head_count, read_checkpoint,
+from dynpt.dust3r.checkpoint import (OfficialCheckpoint, block_count, head_count, read_checkpoint,
                                      rope_frequency)
 
 ENCODER_PREFIXES = ("patch_embed.", "enc_blocks.", "enc_norm.")
@@ -169,7 +169,7 @@ class Dust3rEncoder(nn.Module):
 
 def encoder_kwargs(ckpt: OfficialCheckpoint) -> dict[str, Any]:
     """Dust3rEncoder constructor arguments: sizes from the weights, heads and RoPE from args.model
-    (heads: `dynpt.dust3r_checkpoint.head_count`)."""
+    (heads: `dynpt.dust3r.checkpoint.head_count`)."""
     state_dict = ckpt.state_dict
     proj = state_dict["patch_embed.proj.weight"]  # (D, 3, p, p)
     dim = proj.shape[0]
@@ -200,6 +200,6 @@ def load_dust3r_encoder(path: str | Path, map_location: Any = "cpu") -> Dust3rEn
     Sizes (width, depth, patch, MLP ratio) are read from the weights; the head count and RoPE base
     from the file's `args.model` string (parsed, never executed; a string without the head count
     means CroCo's default of 12, a bare state dict width/64; RoPE base 100 by default).
-    See `dynpt.dust3r_checkpoint` for how the file is unpickled.
+    See `dynpt.dust3r.checkpoint` for how the file is unpickled.
     """
     return encoder_from_checkpoint(read_checkpoint(path, map_location))
