@@ -56,7 +56,8 @@ def build_parser(chosen: str | None) -> argparse.ArgumentParser:
         sub.add_argument(
             "--threads", type=int, default=argparse.SUPPRESS, metavar="N",
             help="intra-op CPU threads of this process (default: the usable cores minus the "
-            "worker processes the command starts; also the config key `threads`)",
+            "worker processes the command starts; for train, pretrain-pointmaps and run also "
+            "the config key `threads`)",
         )
         if name == chosen:
             importlib.import_module(module_name).add_arguments(sub)
@@ -86,7 +87,7 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
 def run_subcommand(argv: list[str]) -> int:
     """Parse `argv` and run its subcommand; exceptions propagate (for callers such as `c4d demo`).
 
-    Sets the process's CPU threads first (`c4d.system.configure_threads`); a command that starts
+    Sets the process's CPU threads first (`c4d_core.system.configure_threads`); a command that starts
     worker processes sets them again, leaving a core to each worker."""
     args = parse_arguments(argv)
     if getattr(args, "threads", None) is not None:
