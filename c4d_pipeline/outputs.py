@@ -15,6 +15,12 @@ OUT/
   config.yaml                the resolved config (`c4d run` writes it before the reconstruction starts)
 Every file is first written under a temporary name and then renamed, so an interrupted run never
 leaves a half-written file under a final name.
+
+`read_reconstruction` reads it back: strictly for scoring, tolerantly (listing what is missing or
+inconsistent) for `c4d inspect`. scene.ply is written here (`_ply_bytes`: x y z float32, red green
+blue uchar, nothing else) and read with trimesh (`read_ply`). trimesh's own PLY export is not used
+for writing because it adds a comment line and an alpha channel to every point, so the file
+would no longer be the one docs/FORMAT.md describes.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from PIL import Image
 
@@ -35,12 +42,17 @@ from c4d_core.files import atomic_path, write_bytes, write_json, write_text
 
 @dataclass
 class Reconstruction:
-    """A 4D reconstruction of T frames of H x W pixels (N tracks)."""
+    """A 4D reconstruction of T frames of H x W pixels (N tracks): what `reconstruct` makes and
+    `read_reconstruction` reads back.
+
+    After a tolerant read (`read_reconstruction(path, strict=False)`) any array is None whose file
+    is missing or unreadable, `problems` says why, and `ply_points`/`ply_colors` hold scene.ply.
+    """
 
     frames: np.ndarray  # uint8 (T,H,W,3)
     depth: np.ndarray  # float32 (T,H,W) z-depth
     masks: np.ndarray  # bool (T,H,W) True = dynamic
-    cam_to_world: np.ndarray  # float32 (T,4,4)
+    cam_to_world: np.ndarray  # (T,4,4) float32; float64 as in poses_tum.txt after a tolerant read
     intrinsics: np.ndarray  # float32 (T,3,3)
     points: np.ndarray  # float32 (T,H,W,3) world pointmaps
     confidence: np.ndarray  # float32 (T,H,W)
@@ -49,10 +61,18 @@ class Reconstruction:
     tracks_valid: np.ndarray | None = None  # bool (T,N)
     report: dict[str, Any] = field(default_factory=dict)
     timestamps: np.ndarray | None = None  # float64 (T,) source time of each frame, s (None: 0,1,2..)
+    path: Path | None = None  # the folder it was read from
+    ply_points: np.ndarray | None = None  # float64 (P,3) of scene.ply (tolerant read only)
+    ply_colors: np.ndarray | None = None  # uint8 (P,3)
+    problems: list[str] = field(default_factory=list)  # what is missing or inconsistent (tolerant read)
 
     @property
-    def num_frames(self) -> int:
-        return int(self.depth.shape[0])
+    def num_frames(self) -> int | None:
+        """T: the length of the first of frames, depth, poses, pointmaps that is there."""
+        for value in (self.frames, self.depth, self.cam_to_world, self.points):
+            if value is not None:
+                return len(value)
+        return None
 
 
 def _save_png(path: Path, image: np.ndarray) -> None:
@@ -119,13 +139,24 @@ def _ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
 
 
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Points (M,3) and colours (M,3) of a scene.ply written by `write_reconstruction`."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    count = int(next(l for l in data[:end].decode().splitlines() if l.startswith("element vertex")).split()[-1])
-    rows = np.frombuffer(data[end:], dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)], count=count)
-    return rows["xyz"].copy(), rows["rgb"].copy()
+    """Points (M,3) float64 (the file's float32 values, exactly) and colours (M,3) uint8 (grey
+    where the file has none) of a PLY point cloud, read with trimesh: the independent reader
+    that shows other tools can open what `write_reconstruction` wrote."""
+    import trimesh  # here: a second to import, and only the tolerant read needs it
 
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    cloud = trimesh.load(path, process=False)
+    vertices = np.asarray(cloud.vertices)
+    if len(vertices) == 0:
+        raise ValueError("it has no points")
+    colors = getattr(cloud, "colors", None)
+    if colors is None or len(colors) != len(vertices):
+        colors = getattr(getattr(cloud, "visual", None), "vertex_colors", None)
+    if colors is None or len(colors) != len(vertices):
+        return vertices, np.full((len(vertices), 3), 128, np.uint8)
+    return vertices, np.asarray(colors)[:, :3].astype(np.uint8)
 
 
 def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_stride: int = 2,
@@ -152,30 +183,144 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_str
     return out
 
 
-def read_reconstruction(out_dir: str | Path) -> Reconstruction:
-    """Read a reconstruction written by `write_reconstruction` (or `c4d run`)."""
+def _numbered(folder: Path, suffix: str) -> list[Path]:
+    """The numbered files of `folder` in order; FileNotFoundError when there are none."""
+    files = sorted(folder.glob(f"[0-9]*{suffix}")) if folder.is_dir() else []
+    if not files:
+        raise FileNotFoundError(folder)
+    return files
+
+
+def _read_images(paths: list[Path], flags: int) -> np.ndarray:
+    """(T,H,W,3) RGB or (T,H,W) grey uint8 images."""
+    images = []
+    for path in paths:
+        image = cv2.imread(str(path), flags)
+        if image is None:
+            raise ValueError(f"{path.name} is not a readable image")
+        images.append(image[..., ::-1] if image.ndim == 3 else image)
+    return np.ascontiguousarray(np.stack(images))
+
+
+def read_reconstruction(out_dir: str | Path, strict: bool = True) -> Reconstruction:
+    """Read a reconstruction written by `write_reconstruction` (or `c4d run`), part by part.
+
+    strict (`c4d eval-recon`, the demo): frames, depth, masks, poses, intrinsics and pointmaps
+    must be there and readable (else `UserError`); tracks and report.json may be missing (None,
+    {}); cam_to_world is float32, as `reconstruct` makes it.
+    strict=False (`c4d inspect`): whatever is present and readable, a missing or broken file
+    becoming None and a line of `problems`, followed by what disagrees between the parts (frame
+    counts, image sizes, non-finite values); scene.ply is read too (`read_ply`), and cam_to_world
+    keeps the float64 of poses_tum.txt.
+    """
     out = Path(out_dir)
-    if not (out / "poses_tum.txt").is_file():
+    if strict and not (out / "poses_tum.txt").is_file():
         raise UserError(f"{out} is not a reconstruction (no poses_tum.txt); give the OUT folder "
                         "of `c4d run`")
-    names = sorted(p.stem for p in (out / "depth").glob("*.npy"))
-    frames = np.stack([np.asarray(Image.open(out / "frames" / f"{n}.png").convert("RGB")) for n in names])
-    depth = np.stack([np.load(out / "depth" / f"{n}.npy") for n in names])
-    masks = np.stack([np.asarray(Image.open(out / "masks" / f"{n}.png")) > 127 for n in names])
-    with np.load(out / "pointmaps.npz") as pm:
-        points, confidence = pm["points"], pm["confidence"]
-    tracks_2d = tracks_world = tracks_valid = None
-    if (out / "tracks_2d.npz").is_file():
-        with np.load(out / "tracks_2d.npz") as tz:
-            tracks_2d = {k: tz[k] for k in tz.files}
-    if (out / "tracks_3d.npz").is_file():
-        with np.load(out / "tracks_3d.npz") as tz:
-            tracks_world, tracks_valid = tz["tracks_world"], tz["valid"]
-    report = json.loads((out / "report.json").read_text()) if (out / "report.json").is_file() else {}
-    return Reconstruction(
-        frames=frames, depth=depth, masks=masks,
-        cam_to_world=read_tum(out / "poses_tum.txt").astype(np.float32),
-        intrinsics=np.load(out / "intrinsics.npy"), points=points, confidence=confidence,
-        tracks_2d=tracks_2d, tracks_world=tracks_world, tracks_valid=tracks_valid, report=report,
-        timestamps=np.loadtxt(out / "poses_tum.txt", ndmin=2)[:, 0],
-    )
+    if not out.is_dir():
+        raise UserError(f"reconstruction directory {out} does not exist; pass the --out of `c4d run`")
+    parts: dict[str, Any] = dict.fromkeys(
+        ("frames", "depth", "masks", "cam_to_world", "intrinsics", "points", "confidence"))
+    problems: list[str] = []
+    tracks_3d_keys: list[str] | None = None  # the arrays tracks_3d.npz holds, once read
+
+    def frames():
+        parts["frames"] = _read_images(_numbered(out / "frames", ".png"), cv2.IMREAD_COLOR)
+
+    def depth():
+        parts["depth"] = np.stack([np.load(f) for f in _numbered(out / "depth", ".npy")]).astype(np.float32)
+
+    def masks():
+        values = _read_images(_numbered(out / "masks", ".png"), cv2.IMREAD_GRAYSCALE)
+        if not strict and not np.isin(values, (0, 255)).all():
+            problems.append("masks/ holds values other than 0 and 255")
+        parts["masks"] = values > 127
+
+    def poses():
+        cam_to_world = read_tum(out / "poses_tum.txt")
+        parts["cam_to_world"] = cam_to_world.astype(np.float32) if strict else cam_to_world
+        parts["timestamps"] = np.loadtxt(out / "poses_tum.txt", ndmin=2)[:, 0]
+
+    def intrinsics():
+        parts["intrinsics"] = np.load(out / "intrinsics.npy")
+
+    def pointmaps():
+        with np.load(out / "pointmaps.npz") as data:
+            parts["points"], parts["confidence"] = data["points"], data["confidence"]
+
+    def tracks_2d():
+        with np.load(out / "tracks_2d.npz") as data:
+            parts["tracks_2d"] = {k: data[k] for k in data.files}
+
+    def tracks_3d():
+        nonlocal tracks_3d_keys
+        with np.load(out / "tracks_3d.npz") as data:
+            tracks_3d_keys = list(data.files)
+            parts["tracks_world"] = data["tracks_world"] if "tracks_world" in data.files else None
+            parts["tracks_valid"] = data["valid"] if "valid" in data.files else None
+
+    def ply():
+        parts["ply_points"], parts["ply_colors"] = read_ply(out / "scene.ply")
+
+    def report():
+        parts["report"] = json.loads((out / "report.json").read_text())
+
+    for name, reader, required in (
+            ("frames/", frames, True), ("depth/", depth, True), ("masks/", masks, True),
+            ("poses_tum.txt", poses, True), ("intrinsics.npy", intrinsics, True),
+            ("pointmaps.npz", pointmaps, True), ("tracks_2d.npz", tracks_2d, False),
+            ("tracks_3d.npz", tracks_3d, False), *(() if strict else (("scene.ply", ply, False),)),
+            ("report.json", report, False)):
+        try:
+            reader()
+        except FileNotFoundError:
+            if strict and required:
+                raise UserError(f"{out}: {name} is missing; give the OUT folder of `c4d run`") from None
+            if not strict:
+                problems.append(f"{name} is missing")
+        except Exception as exc:  # noqa: BLE001 -- strict: one error line; tolerant: listed, reading goes on
+            if strict:
+                raise exc if isinstance(exc, UserError) else UserError(
+                    f"{out}: {name} cannot be read: {type(exc).__name__}: {exc}") from exc
+            problems.append(f"{name} cannot be read: {type(exc).__name__}: {exc}")
+    rec = Reconstruction(**parts, path=out, problems=problems)
+    if not strict:
+        rec.problems += _consistency_problems(rec, tracks_3d_keys)
+    return rec
+
+
+def _consistency_problems(rec: Reconstruction, tracks_3d_keys: list[str] | None) -> list[str]:
+    """Disagreements between the parts of a tolerantly read reconstruction (frame counts, sizes,
+    values, arrays its npz files lack); `tracks_3d_keys`: the arrays tracks_3d.npz holds (None:
+    not read)."""
+    problems = []
+    counts = {name: len(value) for name, value in (
+        ("frames", rec.frames), ("depth", rec.depth), ("masks", rec.masks),
+        ("poses", rec.cam_to_world), ("intrinsics", rec.intrinsics), ("pointmaps", rec.points),
+        ("tracks_2d", None if rec.tracks_2d is None else rec.tracks_2d.get("tracks")),
+        ("tracks_3d", rec.tracks_world),
+    ) if value is not None}
+    if len(set(counts.values())) > 1:
+        problems.append(f"frame counts disagree: {counts}")
+    sizes = {name: value.shape[1:3] for name, value in (
+        ("frames", rec.frames), ("depth", rec.depth), ("masks", rec.masks),
+        ("pointmaps", rec.points)) if value is not None}
+    if len(set(sizes.values())) > 1:
+        problems.append(f"image sizes disagree: {sizes}")
+    for name, value in (("depth", rec.depth), ("poses", rec.cam_to_world),
+                        ("intrinsics", rec.intrinsics), ("pointmaps", rec.points)):
+        if value is not None and not np.isfinite(value).all():
+            problems.append(f"{name} has {int((~np.isfinite(value)).sum())} NaN or infinite values")
+    if rec.depth is not None and (rec.depth[np.isfinite(rec.depth)] <= 0).any():
+        problems.append("depth has values <= 0")
+    if rec.intrinsics is not None and rec.intrinsics.shape[1:] != (3, 3):
+        problems.append(f"intrinsics.npy has shape {rec.intrinsics.shape}, expected (T,3,3)")
+    if rec.tracks_2d is not None:
+        missing = {"tracks", "visible", "moving", "queries"} - set(rec.tracks_2d)
+        if missing:
+            problems.append(f"tracks_2d.npz lacks {sorted(missing)}")
+    if tracks_3d_keys is not None:
+        missing = {"tracks_world", "valid"} - set(tracks_3d_keys)
+        if missing:
+            problems.append(f"tracks_3d.npz lacks {sorted(missing)}")
+    return problems

@@ -9,8 +9,8 @@ from c4d_core.config import load_config
 from c4d_core.errors import UserError
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.ground_truth import GroundTruthPointmaps, oracle_tracks
-from c4d_pipeline.outputs import (Reconstruction, read_ply, read_reconstruction, read_tum, tum_lines,
-                                  write_reconstruction)
+from c4d_pipeline.outputs import (Reconstruction, ply_points, read_ply, read_reconstruction, read_tum,
+                                  tum_lines, write_reconstruction)
 from c4d_core import geometry
 from c4d_pipeline.pipeline import lift_tracks, reconstruct
 from tests.synthetic_scenes import make_box_scene
@@ -48,8 +48,11 @@ def test_round_trip_of_every_file(tmp_path):
     assert back.report == rec.report
     assert sorted(p.name for p in (out / "depth").iterdir()) == [
         f"{t:06d}.{ext}" for t in range(3) for ext in ("npy", "png")]
-    points, colours = read_ply(out / "scene.ply")
+    points, colours = read_ply(out / "scene.ply")  # read by trimesh: the written values, exactly
     assert len(points) == rec.masks.size  # strides 1: every pixel (static of all frames + dynamic)
+    written_points, written_colours = ply_points(rec, 1, 1)
+    np.testing.assert_array_equal(points, written_points)
+    np.testing.assert_array_equal(colours, written_colours)
     assert not list(out.rglob("*.tmp*"))  # atomic writes leave no temporaries
 
 
@@ -62,6 +65,11 @@ def test_tum_lines_are_standard_order():
 def test_reading_a_non_reconstruction_is_a_user_error(tmp_path):
     with pytest.raises(UserError, match="poses_tum"):
         read_reconstruction(tmp_path)
+    out = write_reconstruction(random_reconstruction(np.random.default_rng(1)), tmp_path / "out")
+    (out / "masks" / "000001.png").write_bytes(b"not a png")
+    with pytest.raises(UserError, match="masks/ cannot be read"):
+        read_reconstruction(out)
+    assert "masks/ cannot be read" in read_reconstruction(out, strict=False).problems[0]
     (tmp_path / "poses_tum.txt").write_text("0 1 2 3\n")
     with pytest.raises(UserError, match="8 numbers"):
         read_tum(tmp_path / "poses_tum.txt")

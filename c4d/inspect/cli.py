@@ -62,9 +62,10 @@ def load_inspect_config(args):
 
 def _run_reconstruction(args, cfg) -> int:
     from c4d.inspect import recon_report
+    from c4d_pipeline.outputs import read_reconstruction
 
     if args.check and args.out is None:
-        recon = recon_report.load_reconstruction(args.source)
+        recon = read_reconstruction(args.source, strict=False)
         for problem in recon.problems:
             print(f"{args.source}: {problem}")
         print(f"{args.source}: {len(recon.problems)} problems")

@@ -1,6 +1,7 @@
 """Report on a reconstruction directory written by `c4d run` (layout: INTERFACES.md, docs/FORMAT.md).
 
-Reads what is there, lists what is missing or inconsistent, and writes into OUT:
+Reads what is there with `c4d_pipeline.outputs.read_reconstruction(path, strict=False)`, which
+lists what is missing or inconsistent, and writes into OUT:
 `overview.webm` (frames with tracks | depth | motion mask), `depth.webm`, `masks.webm`,
 `trajectory.png` (with the aligned ground truth when given), `flythrough.webm` (the 4D point
 cloud: static background once plus each frame's moving points, seen from an orbiting virtual
@@ -10,13 +11,9 @@ camera, rendered by `point_render`), `ply.png` (scene.ply read back with trimesh
 
 from __future__ import annotations
 
-import json
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
-import trimesh
 
 from c4d.inspect import html, plots, point_render
 from c4d_core import draw, geometry
@@ -25,7 +22,7 @@ from c4d_core.files import make_folder, write_json
 from c4d_core.video import write_image, write_video
 from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
 from c4d_pipeline.eval_recon import scene_frame_indices
-from c4d_pipeline.outputs import read_reconstruction, read_tum
+from c4d_pipeline.outputs import Reconstruction, read_reconstruction
 
 MARKER_FILES = ("poses_tum.txt", "pointmaps.npz", "report.json")  # any one marks a reconstruction
 CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
@@ -35,179 +32,6 @@ def is_reconstruction(path: str | Path) -> bool:
     """True if `path` is a directory that looks like the output of `c4d run`."""
     path = Path(path)
     return path.is_dir() and any((path / name).is_file() for name in MARKER_FILES)
-
-
-# --------------------------------------------------------------------------------------------
-# Reading
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Reconstruction:
-    """What a `c4d run` directory holds; a field is None when its file is missing or unreadable.
-
-    Shapes: T frames of H x W pixels, N tracks. `problems` lists what is missing or inconsistent.
-    """
-
-    path: Path
-    frames: np.ndarray | None = None  # uint8 (T,H,W,3)
-    depth: np.ndarray | None = None  # float32 (T,H,W) z-depth
-    masks: np.ndarray | None = None  # bool (T,H,W), True = dynamic
-    cam_to_world: np.ndarray | None = None  # float64 (T,4,4) from poses_tum.txt
-    intrinsics: np.ndarray | None = None  # float32 (T,3,3)
-    points: np.ndarray | None = None  # float32 (T,H,W,3) world pointmaps
-    confidence: np.ndarray | None = None  # float32 (T,H,W)
-    tracks_2d: dict | None = None  # tracks (T,N,2), visible (T,N), moving (T,N), queries (N,3)
-    tracks_3d: dict | None = None  # tracks_world (T,N,3), valid (T,N)
-    ply_points: np.ndarray | None = None  # (P,3) from scene.ply
-    ply_colors: np.ndarray | None = None  # uint8 (P,3)
-    report: dict | None = None
-    problems: list[str] = field(default_factory=list)
-
-    @property
-    def num_frames(self) -> int | None:
-        for value in (self.frames, self.depth, self.cam_to_world, self.points):
-            if value is not None:
-                return len(value)
-        return None
-
-
-def _numbered(folder: Path, suffix: str) -> list[Path]:
-    return sorted(folder.glob(f"[0-9]*{suffix}")) if folder.is_dir() else []
-
-
-def _read_images(paths: list[Path], flags: int) -> np.ndarray:
-    images = []
-    for path in paths:
-        image = cv2.imread(str(path), flags)
-        if image is None:
-            raise ValueError(f"{path.name} is not a readable image")
-        images.append(image[..., ::-1] if image.ndim == 3 else image)
-    return np.ascontiguousarray(np.stack(images))
-
-
-def _load(recon: Reconstruction, name: str, loader) -> None:
-    """Run `loader()`; a missing or broken file becomes a problem, not an exception."""
-    try:
-        loader()
-    except FileNotFoundError:
-        recon.problems.append(f"{name} is missing")
-    except Exception as exc:  # noqa: BLE001 -- any decoding failure is reported, reading goes on
-        recon.problems.append(f"{name} cannot be read: {type(exc).__name__}: {exc}")
-
-
-def load_reconstruction(path: str | Path) -> Reconstruction:
-    """Read every part of a `c4d run` directory that is present and readable.
-
-    Unlike `c4d_pipeline.outputs.read_reconstruction`, which needs a complete directory, this
-    reads part by part, so a missing or broken part becomes a listed problem, and it opens
-    scene.ply with trimesh as an independent check that other tools can read it.
-    """
-    path = Path(path)
-    if not path.is_dir():
-        raise UserError(f"reconstruction directory {path} does not exist; pass the --out of `c4d run`")
-    recon = Reconstruction(path)
-
-    def frames():
-        files = _numbered(path / "frames", ".png")
-        if not files:
-            raise FileNotFoundError
-        recon.frames = _read_images(files, cv2.IMREAD_COLOR)
-
-    def depth():
-        files = _numbered(path / "depth", ".npy")
-        if not files:
-            raise FileNotFoundError
-        recon.depth = np.stack([np.load(f) for f in files]).astype(np.float32)
-
-    def masks():
-        files = _numbered(path / "masks", ".png")
-        if not files:
-            raise FileNotFoundError
-        values = _read_images(files, cv2.IMREAD_GRAYSCALE)
-        if not np.isin(values, (0, 255)).all():
-            recon.problems.append("masks/ holds values other than 0 and 255")
-        recon.masks = values > 127
-
-    def poses():
-        if not (path / "poses_tum.txt").is_file():
-            raise FileNotFoundError
-        recon.cam_to_world = read_tum(path / "poses_tum.txt")
-
-    def intrinsics():
-        recon.intrinsics = np.load(path / "intrinsics.npy")
-
-    def pointmaps():
-        with np.load(path / "pointmaps.npz") as data:
-            recon.points, recon.confidence = data["points"], data["confidence"]
-
-    def tracks_2d():
-        with np.load(path / "tracks_2d.npz") as data:
-            recon.tracks_2d = {k: data[k] for k in data.files}
-
-    def tracks_3d():
-        with np.load(path / "tracks_3d.npz") as data:
-            recon.tracks_3d = {k: data[k] for k in data.files}
-
-    def ply():
-        if not (path / "scene.ply").is_file():
-            raise FileNotFoundError
-        cloud = trimesh.load(path / "scene.ply", process=False)
-        vertices = np.asarray(cloud.vertices)
-        if len(vertices) == 0:
-            raise ValueError("it has no points")
-        colors = getattr(cloud, "colors", None)
-        if colors is None or len(colors) != len(vertices):
-            colors = getattr(getattr(cloud, "visual", None), "vertex_colors", None)
-        recon.ply_points = vertices
-        recon.ply_colors = (np.asarray(colors)[:, :3].astype(np.uint8) if colors is not None
-                            and len(colors) == len(vertices) else np.full((len(vertices), 3), 128, np.uint8))
-
-    def report():
-        recon.report = json.loads((path / "report.json").read_text())
-
-    for name, loader in (("frames/", frames), ("depth/", depth), ("masks/", masks),
-                         ("poses_tum.txt", poses), ("intrinsics.npy", intrinsics),
-                         ("pointmaps.npz", pointmaps), ("tracks_2d.npz", tracks_2d),
-                         ("tracks_3d.npz", tracks_3d), ("scene.ply", ply), ("report.json", report)):
-        _load(recon, name, loader)
-    recon.problems += consistency_problems(recon)
-    return recon
-
-
-def consistency_problems(recon: Reconstruction) -> list[str]:
-    """Disagreements between the parts of a reconstruction (frame counts, sizes, values)."""
-    problems = []
-    counts = {name: len(value) for name, value in (
-        ("frames", recon.frames), ("depth", recon.depth), ("masks", recon.masks),
-        ("poses", recon.cam_to_world), ("intrinsics", recon.intrinsics), ("pointmaps", recon.points),
-        ("tracks_2d", None if recon.tracks_2d is None else recon.tracks_2d.get("tracks")),
-        ("tracks_3d", None if recon.tracks_3d is None else recon.tracks_3d.get("tracks_world")),
-    ) if value is not None}
-    if len(set(counts.values())) > 1:
-        problems.append(f"frame counts disagree: {counts}")
-    sizes = {name: value.shape[1:3] for name, value in (
-        ("frames", recon.frames), ("depth", recon.depth), ("masks", recon.masks),
-        ("pointmaps", recon.points)) if value is not None}
-    if len(set(sizes.values())) > 1:
-        problems.append(f"image sizes disagree: {sizes}")
-    for name, value in (("depth", recon.depth), ("poses", recon.cam_to_world),
-                        ("intrinsics", recon.intrinsics), ("pointmaps", recon.points)):
-        if value is not None and not np.isfinite(value).all():
-            problems.append(f"{name} has {int((~np.isfinite(value)).sum())} NaN or infinite values")
-    if recon.depth is not None and (recon.depth[np.isfinite(recon.depth)] <= 0).any():
-        problems.append("depth has values <= 0")
-    if recon.intrinsics is not None and recon.intrinsics.shape[1:] != (3, 3):
-        problems.append(f"intrinsics.npy has shape {recon.intrinsics.shape}, expected (T,3,3)")
-    if recon.tracks_2d is not None:
-        missing = {"tracks", "visible", "moving", "queries"} - set(recon.tracks_2d)
-        if missing:
-            problems.append(f"tracks_2d.npz lacks {sorted(missing)}")
-    if recon.tracks_3d is not None:
-        missing = {"tracks_world", "valid"} - set(recon.tracks_3d)
-        if missing:
-            problems.append(f"tracks_3d.npz lacks {sorted(missing)}")
-    return problems
 
 
 # --------------------------------------------------------------------------------------------
@@ -325,7 +149,7 @@ def ground_truth_trajectory(recon: Reconstruction, scene) -> tuple[np.ndarray, n
     """The estimated poses Sim(3)-aligned onto the ground truth of the frames that were
     reconstructed (chosen as `c4d eval-recon` chooses them), the ground-truth poses, and the
     pose metrics: ((T,4,4), (T,4,4), {ate, rpe_trans, rpe_rot, sim3_scale})."""
-    indices, _ = scene_frame_indices(read_reconstruction(recon.path), scene.num_frames)
+    indices, _ = scene_frame_indices(recon, scene.num_frames)
     truth = scene.cam_to_world[indices].astype(np.float64)  # (T,4,4)
     aligned, _ = align_trajectory(recon.cam_to_world, truth)
     return aligned, truth, pose_metrics(recon.cam_to_world, truth)
@@ -347,7 +171,7 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
     scored in the summary. Returns the summary.
     """
     out = make_folder(out)
-    recon = load_reconstruction(path)
+    recon = read_reconstruction(path, strict=False)
     written: dict[str, Path] = {}
     fps = cfg.fps
     overview = overview_video(recon, cfg)
@@ -376,7 +200,7 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
                 recon.problems.append(f"ground truth not drawn: {exc}")
         others, other_errors = {}, {}
         for label, other_path in (compare or {}).items():
-            other = load_reconstruction(other_path)
+            other = read_reconstruction(other_path, strict=False)
             if other.cam_to_world is None:
                 continue
             if truth is not None:
