@@ -32,7 +32,7 @@ import numpy as np
 from c4d_core.errors import UserError
 from c4d_core.geometry import invert_pose
 from c4d_pipeline.outputs import read_tum
-from dynpt.video_io import IMAGE_SUFFIXES
+from c4d_core.video import IMAGE_SUFFIXES
 
 SINTEL_TAG = 202021.25
 SINTEL_POSE_SEQUENCES = ("alley_2", "ambush_4", "ambush_5", "ambush_6", "cave_2", "cave_4", "market_2",

@@ -1,6 +1,6 @@
 """The frames a reconstruction works on: read a video or image folder, then DUSt3R preprocessing.
 
-Reading (files, folders, stride, frame limit, corrupt or truncated files) is `dynpt.video_io`'s;
+Reading (files, folders, stride, frame limit, corrupt or truncated files) is `c4d_core.video`'s;
 this module adds DUSt3R's geometric preprocessing (dust3r `load_images`):
 - size 512 (or any other long side S): resize so the long side is S (LANCZOS when shrinking,
   BICUBIC when enlarging; new size round(x * S / long side)), centre-crop each side down to a
@@ -19,7 +19,7 @@ import numpy as np
 from PIL import Image
 
 from c4d_core.errors import UserError
-from dynpt.video_io import read_video, video_fps
+from c4d_core.video import read_video, video_fps
 
 PATCH = 16
 

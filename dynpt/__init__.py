@@ -21,8 +21,8 @@ _EXPORTS = {
     "save_checkpoint": "dynpt.checkpoint",
     "load_checkpoint": "dynpt.checkpoint",
     "sample_queries": "dynpt.query_sampling",
-    "read_video": "dynpt.video_io",
-    "write_video": "dynpt.video_io",
+    "read_video": "c4d_core.video",
+    "write_video": "c4d_core.video:write_user_video",  # module:name where the names differ
 }
 
 __all__ = sorted(_EXPORTS)
@@ -30,5 +30,6 @@ __all__ = sorted(_EXPORTS)
 
 def __getattr__(name: str):
     if name in _EXPORTS:
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
+        module, _, attr = _EXPORTS[name].partition(":")
+        return getattr(importlib.import_module(module), attr or name)
     raise AttributeError(f"module 'dynpt' has no attribute {name!r}")

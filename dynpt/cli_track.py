@@ -72,7 +72,7 @@ def grid_for_budget(height: int, width: int, grid_size: int, points: int | None)
 def run(args: argparse.Namespace) -> int:
     from c4d_core.draw import draw_tracks_enlarged
     from dynpt.inference import load_tracker
-    from dynpt.video_io import read_video, resize_long_side, video_fps, write_video
+    from c4d_core.video import read_video, resize_long_side, video_fps, write_user_video
 
     for flag in ("grid_size", "max_points", "points", "size", "max_size"):
         value = getattr(args, flag)
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
                                    show_occluded=False, legend=True)
     source_fps = video_fps(args.video)
     fps = args.fps or (source_fps / args.stride if source_fps else 12.0)
-    write_video(out / "overlay.mp4", overlay, fps)
+    write_user_video(out / "overlay.mp4", overlay, fps)
     moving = np.nanmean(result.moving[result.visible] > 0.5) if result.visible.any() else float("nan")
     log.info("wrote %s and %s (%.0f%% of visible points predicted moving)", out / "tracks.npz",
              out / "overlay.mp4", 100 * moving)

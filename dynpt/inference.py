@@ -59,7 +59,7 @@ class TrackResult:
 def _check_video(video) -> np.ndarray | torch.Tensor:
     """`video` as uint8 (T,H,W,3); a path (str or PathLike) is read with `dynpt.read_video`."""
     if isinstance(video, (str, os.PathLike)):
-        from dynpt.video_io import read_video
+        from c4d_core.video import read_video
 
         video = read_video(video)
     if isinstance(video, torch.Tensor):

@@ -15,7 +15,7 @@ from datagen.generate import generate_scene
 from dynpt.checkpoint import save_checkpoint
 from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
 from dynpt.model import build_model
-from dynpt.video_io import write_video
+from c4d_core.video import write_video
 
 TINY_NET = Dust3rConfig(enc_embed_dim=32, enc_depth=2, enc_num_heads=2, dec_embed_dim=32, dec_depth=2,
                         dec_num_heads=2, head_type="linear", img_size=512)

@@ -297,7 +297,7 @@ def test_c4d_track_reads_a_released_file(tmp_path):
     import numpy as np
 
     from c4d.cli import main
-    from dynpt.video_io import write_video
+    from c4d_core.video import write_video
     from tests.cotracker3_layout import write_released
 
     cfg = load_config("dynpt", "model/cotracker3-offline", overrides=SMALL).model

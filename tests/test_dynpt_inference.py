@@ -12,7 +12,7 @@ from c4d_core.errors import UserError
 from dynpt.checkpoint import save_checkpoint
 from dynpt.inference import Tracker, load_tracker
 from dynpt.query_sampling import sample_queries
-from dynpt.video_io import read_video, write_video
+from c4d_core.video import read_video, write_video
 from test_dynpt_model import make_model
 
 
@@ -197,7 +197,7 @@ def test_track_accepts_a_video_path(tmp_path):
 def test_working_size_is_range_checked_and_optional():
     """--size/--max-size: unchanged without either, refused outside 8..4096 (a huge size once
     ended in an out-of-memory traceback), never enlarged by --max-size."""
-    from dynpt.video_io import resize_long_side
+    from c4d_core.video import resize_long_side
 
     video = np.zeros((2, 5, 6, 3), np.uint8)
     assert resize_long_side(video) is video  # the tracker names its own minimum frame size

@@ -250,7 +250,7 @@ def inputs(tmp_path_factory):
     """What the writing commands read: shards, a tracker checkpoint, a video, a pointmap net."""
     from tests.test_c4d_run import ARGS, tiny_network
     import argparse
-    from dynpt.video_io import write_video
+    from c4d_core.video import write_video
 
     folder = tmp_path_factory.mktemp("fault-inputs")
     shards = synthetic_shards(6, 3)

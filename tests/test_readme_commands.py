@@ -140,7 +140,7 @@ def _placeholders(folder: Path, line: str) -> None:
     val = folder / "data" / "val"
     if not (folder / "video.mp4").exists() and list(val.glob("*.tar")):
         from datagen.shards import read_scenes
-        from dynpt.video_io import write_video
+        from c4d_core.video import write_video
 
         write_video(folder / "video.mp4", next(iter(read_scenes(val))).rgb, fps=10)
     rng = np.random.default_rng(0)
