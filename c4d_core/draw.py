@@ -17,6 +17,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from c4d_core.geometry import rescale_pixels
+
 STATIC_COLOR = (40, 120, 255)  # RGB: points that stay put in the world
 MOVING_COLOR = (255, 50, 40)  # RGB: points whose world position changes
 TRACK_LEGEND = {"static": STATIC_COLOR, "moving": MOVING_COLOR}
@@ -261,7 +263,7 @@ def draw_tracks_enlarged(
     as `draw_tracks`; returns RGB uint8 (T,H*f,W*f,3).
     """
     factor = display_scale(np.asarray(frames).shape[1], min_height)
-    tracks = (np.asarray(tracks, dtype=np.float32) + 0.5) * factor - 0.5
+    tracks = rescale_pixels(np.asarray(tracks, dtype=np.float32), factor)
     return draw_tracks(upscale(np.asarray(frames), factor), tracks, visible, moving, **kwargs)
 
 

@@ -188,6 +188,16 @@ def pixel_grid(height: int, width: int) -> np.ndarray:
     return np.stack([xs, ys], axis=-1)
 
 
+def rescale_pixels(coords, scale, inverse: bool = False):
+    """Pixel coordinates `coords` (any shape) in an image `scale` times the size, pixel centres
+    kept: (coords + 0.5) * scale - 0.5, or with `inverse` back to the original image,
+    (coords + 0.5) / scale - 0.5. Plain arithmetic, so numpy arrays, torch tensors and numbers alike;
+    `scale` broadcasts against `coords` (a number, or (sx, sy) against (...,2))."""
+    if inverse:
+        return (coords + 0.5) / scale - 0.5
+    return (coords + 0.5) * scale - 0.5
+
+
 def unproject_depth_map(depth: np.ndarray, intrinsics: np.ndarray,
                         cam_to_world: np.ndarray) -> np.ndarray:
     """z-depth map (H,W) -> world points (H,W,3) at every pixel centre."""

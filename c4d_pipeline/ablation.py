@@ -34,6 +34,7 @@ import torch
 from c4d_core.config import load_config, to_dict
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
+from c4d_core.geometry import rescale_pixels
 from c4d_pipeline.eval_metrics import depth_metrics, mask_iou, pose_metrics
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.ground_truth import (ground_truth_motion_masks, oracle_tracks, resize_intrinsics,
@@ -83,8 +84,8 @@ def resize_scene(scene: Scene, size: int, frames: int | None = None) -> Scene:
     sx, sy = hw[1] / w, hw[0] / h
     rgb = np.stack([cv2.resize(f, hw[::-1], interpolation=cv2.INTER_AREA) for f in scene.rgb[keep]])
     tracks = scene.tracks[:, keep].copy()
-    tracks[..., 0] = (tracks[..., 0] + 0.5) * sx - 0.5
-    tracks[..., 1] = (tracks[..., 1] + 0.5) * sy - 0.5
+    tracks[..., 0] = rescale_pixels(tracks[..., 0], sx)
+    tracks[..., 1] = rescale_pixels(tracks[..., 1], sy)
     occluded, query_frame = scene.occluded[:, keep].copy(), scene.query_frame.copy()
     outside = query_frame >= rgb.shape[0]  # queried after the cut: re-anchor at first visible frame
     query_frame[outside] = np.argmax(~occluded[outside], axis=1)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from c4d_core.errors import UserError
+from c4d_core.geometry import rescale_pixels
 
 log = logging.getLogger("c4d.track")
 
@@ -71,8 +72,8 @@ def grid_for_budget(height: int, width: int, grid_size: int, points: int | None)
 
 def run(args: argparse.Namespace) -> int:
     from c4d_core.draw import draw_tracks_enlarged
-    from dynpt.inference import load_tracker
     from c4d_core.video import read_video, resize_long_side, video_fps, write_user_video
+    from dynpt.inference import load_tracker
 
     for flag in ("grid_size", "max_points", "points", "size", "max_size"):
         value = getattr(args, flag)
@@ -87,8 +88,8 @@ def run(args: argparse.Namespace) -> int:
     queries = _read_queries(args.queries) if args.queries else None
     if queries is not None and (sx, sy) != (1, 1):
         queries = np.asarray(queries, np.float64).copy()
-        queries[:, 1] = (queries[:, 1] + 0.5) * sx - 0.5
-        queries[:, 2] = (queries[:, 2] + 0.5) * sy - 0.5
+        queries[:, 1] = rescale_pixels(queries[:, 1], sx)
+        queries[:, 2] = rescale_pixels(queries[:, 2], sy)
     grid = grid_for_budget(H, W, args.grid_size, args.points)
     tracker = load_tracker(args.ckpt, args.device)
     out = Path(args.out)

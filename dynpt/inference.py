@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from c4d_core.errors import UserError
 from c4d_core.files import atomic_path
+from c4d_core.geometry import rescale_pixels
 from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
 from dynpt.device import autocast, bf16_supported, inference_autocast_dtype
 from dynpt.model import DynPT
@@ -52,8 +53,8 @@ class TrackResult:
             return self
         scale = np.array([fx, fy], np.float32)
         queries = self.queries.copy()
-        queries[:, 1:] = (queries[:, 1:] + 0.5) * scale - 0.5
-        return replace(self, tracks=(self.tracks + 0.5) * scale - 0.5, queries=queries)
+        queries[:, 1:] = rescale_pixels(queries[:, 1:], scale)
+        return replace(self, tracks=rescale_pixels(self.tracks, scale), queries=queries)
 
 
 def _check_video(video) -> np.ndarray | torch.Tensor:
@@ -185,8 +186,8 @@ class Tracker:
                             "of the frame)")
         sx, sy = w / W, h / H
         scaled = queries.copy()
-        scaled[:, 1] = (queries[:, 1] + 0.5) * sx - 0.5
-        scaled[:, 2] = (queries[:, 2] + 0.5) * sy - 0.5
+        scaled[:, 1] = rescale_pixels(queries[:, 1], sx)
+        scaled[:, 2] = rescale_pixels(queries[:, 2], sy)
         frames = self._video_tensor(video, (h, w))  # (1,T,3,h,w) uint8
 
         chunk = max_points or len(queries)
@@ -195,8 +196,8 @@ class Tracker:
                   self._predict(frames, np.concatenate([scaled[i:i + chunk], support]), backward)]
                  for i in range(0, len(queries), chunk)]
         coords, logits, done = (torch.cat(p, dim=1) for p in zip(*parts))  # (T,N,...)
-        coords[..., 0] = (coords[..., 0] + 0.5) / sx - 0.5
-        coords[..., 1] = (coords[..., 1] + 0.5) / sy - 0.5
+        coords[..., 0] = rescale_pixels(coords[..., 0], sx, inverse=True)
+        coords[..., 1] = rescale_pixels(coords[..., 1], sy, inverse=True)
         prob = torch.sigmoid(logits)  # (T,N,3)
         visible = prob[..., 0] * prob[..., 1] > cfg["visibility_threshold"]
         confidence, moving = prob[..., 1], prob[..., 2]

@@ -66,3 +66,22 @@ def test_pose_inverse_and_quaternions():
     np.testing.assert_allclose(geometry.quat_slerp(q0, q1, 1.0), q1, atol=1e-12)
     half = geometry.quat_to_matrix(geometry.quat_slerp(q0, q1, 0.5))
     np.testing.assert_allclose(half[:2, 0], [np.cos(np.pi / 4), np.sin(np.pi / 4)], atol=1e-12)
+
+
+def test_rescale_pixels_keeps_pixel_centres_for_numpy_and_torch():
+    torch = pytest.importorskip("torch")
+    # A 4-pixel row doubled: the outer edges (-0.5, 3.5) stay edges, pixel 0's centre lands
+    # between the new pixels 0 and 1.
+    row = np.array([-0.5, 0.0, 3.5], np.float32)
+    np.testing.assert_array_equal(geometry.rescale_pixels(row, 2), [-0.5, 0.5, 7.5])
+    np.testing.assert_array_equal(geometry.rescale_pixels(geometry.rescale_pixels(row, 2), 2, inverse=True),
+                                  row)
+    # (sx, sy) against (...,2); float32 stays float32; a tensor gives the very same bits.
+    tracks = np.random.default_rng(0).uniform(-1, 60, (5, 7, 2)).astype(np.float32)
+    scale = np.array([0.7, 1.3], np.float32)
+    out = geometry.rescale_pixels(tracks, scale)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out[..., 1], geometry.rescale_pixels(tracks[..., 1], scale[1]))
+    np.testing.assert_array_equal(geometry.rescale_pixels(torch.from_numpy(tracks[..., 0]), 0.7,
+                                                          inverse=True).numpy(),
+                                  geometry.rescale_pixels(tracks[..., 0], np.float32(0.7), inverse=True))
