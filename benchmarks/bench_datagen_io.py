@@ -30,7 +30,8 @@ import numpy as np
 from c4d_core.config import load_config
 from c4d_core.system import require_egl
 from datagen.cli import usable_cpus
-from datagen.shards import decode_array, decode_scene, encode_array, encode_scene, list_shards
+from datagen.codecs import decode_array, encode_array
+from datagen.shards import decode_scene, encode_scene, list_shards
 
 
 def median_seconds(fn, repeats: int):

@@ -38,9 +38,9 @@ from c4d_core.errors import UserError
 from c4d_core.files import make_folder, write_json, write_text
 from c4d_core.schema import RULES
 from c4d_core.system import configure_threads, init_worker_threads, require_egl
+from datagen.codecs import FORMAT_VERSION
 from datagen.jobs import SHARD_PATTERN, ShardPlan, resolve_task
-from datagen.shards import (DATASET_FILE, FORMAT_VERSION, KEY_PATTERN, ShardWriter, encode_scene,
-                            scene_key)
+from datagen.shards import DATASET_FILE, KEY_PATTERN, ShardWriter, encode_scene, scene_key
 
 log = logging.getLogger(__name__)
 

@@ -1,16 +1,9 @@
 """Scenes in webdataset tar shards: encode, write atomically, list and read back.
 
 One scene is one webdataset sample: tar members `<key>.<field>.<ext>` next to each other, where
-`<key>` is `{split}-{scene_index:08d}`. The layout and the encodings (chosen by measurement, see
-docs/FORMAT.md and docs/perf/datagen_io.md):
-
-- `rgb.npy`: uint8 (T,H,W,3), an uncompressed .npy (format 2; format 1 wrote `rgb.png`, the
-  frames stacked vertically in one PNG, which is still read).
-- `segmentation.png`: (T*H, W) 8-bit PNG (16-bit when an id exceeds 255), decoded to int32.
-- every other array: `<field>.npy.bsz`, lossless for any dtype (see `encode_array`).
-- `meta.json`, `objects.json`: UTF-8 JSON.
-- `checksums.json` (format 3): the CRC-32 of every other member of the sample, checked on read.
-A field that is `None` has no member and decodes to `None`.
+`<key>` is `{split}-{scene_index:08d}`; which member holds each field and its bytes are
+`datagen.codecs` (docs/FORMAT.md). A shard's scenes are listed by the dataset file beside it
+(`dataset_record`).
 """
 
 from __future__ import annotations
@@ -24,164 +17,21 @@ import zlib
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Sequence
 
-import cv2
-import numpy as np
-
 from c4d_core.errors import UserError
-from c4d_core.files import disk_error, json_default, remove_quietly
+from c4d_core.files import disk_error, remove_quietly
+from datagen.codecs import (ARRAY_FIELDS, CHECKSUMS, FORMAT_1_RGB, REQUIRED_FIELDS, crc32,
+                            decode_array, decode_field, encode_field, member_suffix, to_json_bytes,
+                            wrong_layout)
 from datagen.jobs import SHARD_PATTERN
 from datagen.scene import Scene
 
-FORMAT_VERSION = 3  # 3: a `checksums.json` member; 2: rgb as raw `rgb.npy` (~50x faster than PNG)
-ZLIB_LEVEL = 1  # level 6 saves 3-7 % on float labels at half the encode speed (docs/perf)
-PNG_LEVEL = 1
 KEY_PATTERN = "{split}-{scene_index:08d}"
-
-# field -> (dtype, ndim) of the contract (docs/FORMAT.md); `objects` and `meta` are JSON.
-ARRAY_FIELDS: dict[str, tuple[np.dtype, int]] = {
-    "rgb": (np.dtype(np.uint8), 4),
-    "depth": (np.dtype(np.float32), 3),
-    "segmentation": (np.dtype(np.int32), 3),
-    "flow_fwd": (np.dtype(np.float32), 4),
-    "flow_bwd": (np.dtype(np.float32), 4),
-    "intrinsics": (np.dtype(np.float32), 3),
-    "cam_to_world": (np.dtype(np.float32), 3),
-    "object_to_world": (np.dtype(np.float32), 4),
-    "tracks": (np.dtype(np.float32), 3),
-    "occluded": (np.dtype(np.bool_), 2),
-    "query_frame": (np.dtype(np.int32), 1),
-    "track_object": (np.dtype(np.int32), 1),
-    "tracks_world": (np.dtype(np.float32), 3),
-    "displacement": (np.dtype(np.float32), 2),
-    "moving": (np.dtype(np.bool_), 2),
-}
-JSON_FIELDS = ("meta", "objects")
-SPECIAL_MEMBERS = {"rgb": "rgb.npy", "segmentation": "segmentation.png"}
-FORMAT_1_RGB = "rgb.png"  # format 1's rgb member, still read
 ALWAYS_READ = ("intrinsics", "meta")  # `decode_scene` needs these whatever fields are asked for
-# Fields every datagen scene has (docs/FORMAT.md): a sample without one of them is incomplete.
-REQUIRED_FIELDS = ("rgb", "intrinsics", "cam_to_world", "objects", "tracks", "occluded",
-                   "query_frame", "track_object", "meta")
-CHECKSUMS = "checksums.json"  # {"crc32": {member suffix: 8 hex digits}}, before `meta.json`
-
-
-def member_suffix(name: str) -> str:
-    """The tar member suffix (webdataset extension) that holds field `name`."""
-    if name in SPECIAL_MEMBERS:
-        return SPECIAL_MEMBERS[name]
-    return f"{name}.json" if name in JSON_FIELDS else f"{name}.npy.bsz"
 
 
 def scene_key(split: str, scene_index: int) -> str:
     """The webdataset key of a scene: no dots, sortable, e.g. `train-00000042`."""
     return KEY_PATTERN.format(split=split, scene_index=scene_index)
-
-
-# --- arrays -------------------------------------------------------------------------------------
-
-
-def encode_array(array: np.ndarray) -> bytes:
-    """Lossless `.npy.bsz`: zlib of (a .npy v1 header, then the data byte-shuffled).
-
-    Byte shuffling stores byte 0 of every element, then byte 1, ...: the sign/exponent bytes of
-    float32 labels then form long, very compressible runs, which plain zlib of the .npy misses.
-    """
-    array = np.ascontiguousarray(array)
-    header = io.BytesIO()
-    np.lib.format.write_array_header_1_0(header, np.lib.format.header_data_from_array_1_0(array))
-    planes = array.reshape(-1).view(np.uint8).reshape(-1, array.itemsize).T  # (itemsize, n)
-    return zlib.compress(header.getvalue() + np.ascontiguousarray(planes).tobytes(), ZLIB_LEVEL)
-
-
-def _npy_bytes(data: bytes) -> tuple[tuple[int, ...], np.dtype, np.ndarray]:
-    """Shape, dtype and the data bytes (uint8, a view of `data`) of an uncompressed .npy v1."""
-    raw = io.BytesIO(data)
-    np.lib.format.read_magic(raw)
-    shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(raw)
-    if fortran_order:
-        raise ValueError("Fortran-ordered arrays are not part of the format")
-    payload = np.frombuffer(data, np.uint8, offset=raw.tell())
-    expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-    if payload.size != expected:
-        raise ValueError(f"array data has {payload.size} bytes, expected {expected}")
-    return shape, dtype, payload
-
-
-def decode_array(data: bytes) -> np.ndarray:
-    """Inverse of `encode_array`."""
-    shape, dtype, planes = _npy_bytes(zlib.decompress(data))  # planes: (itemsize * count,)
-    count = planes.size // dtype.itemsize
-    data_bytes = np.ascontiguousarray(planes.reshape(dtype.itemsize, count).T)  # (count, itemsize)
-    return data_bytes.view(dtype).reshape(shape)
-
-
-def _encode_png(image: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
-    if not ok:
-        raise ValueError(f"PNG encoding failed for an image of shape {image.shape}")
-    return buf.tobytes()
-
-
-def _decode_png(data: bytes) -> np.ndarray:
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ValueError("not a readable PNG image")
-    return image
-
-
-def encode_rgb(rgb: np.ndarray) -> bytes:
-    """uint8 (T,H,W,3) RGB -> an uncompressed .npy v1 (the header, then the pixels).
-
-    Uncompressed because training decodes every frame of every clip: PNG costs ~50 ms CPU per
-    256x256 x 24 scene, more than a loader worker's whole budget per clip (docs/perf).
-    """
-    rgb = np.ascontiguousarray(rgb)
-    header = io.BytesIO()
-    np.lib.format.write_array_header_1_0(header, np.lib.format.header_data_from_array_1_0(rgb))
-    return header.getvalue() + rgb.tobytes()
-
-
-def decode_rgb(data: bytes, num_frames: int) -> np.ndarray:
-    """Inverse of `encode_rgb`: uint8 (T,H,W,3) RGB, a writable copy."""
-    shape, dtype, pixels = _npy_bytes(data)
-    if dtype != np.uint8 or len(shape) != 4 or shape[0] != num_frames or shape[3] != 3:
-        raise ValueError(f"rgb array {dtype} {shape} does not hold {num_frames} RGB frames")
-    return pixels.reshape(shape).copy()
-
-
-def decode_rgb_png(data: bytes, num_frames: int) -> np.ndarray:
-    """Format 1's `rgb.png` (the frames stacked vertically, (T*H, W, 3)) -> uint8 (T,H,W,3) RGB."""
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR_RGB)
-    if image is None or image.shape[0] % num_frames:
-        shape = None if image is None else image.shape
-        raise ValueError(f"rgb image of shape {shape} does not hold {num_frames} RGB frames")
-    return image.reshape(num_frames, -1, *image.shape[1:])
-
-
-def encode_segmentation(segmentation: np.ndarray) -> bytes:
-    """int32 (T,H,W) ids -> one 8-bit PNG (16-bit if an id exceeds 255) of the stacked frames."""
-    t, h, w = segmentation.shape
-    low, high = int(segmentation.min(initial=0)), int(segmentation.max(initial=0))
-    if low < 0 or high > np.iinfo(np.uint16).max:
-        raise ValueError(f"segmentation ids must lie in [0, 65535], got [{low}, {high}]")
-    dtype = np.uint8 if high <= np.iinfo(np.uint8).max else np.uint16
-    return _encode_png(segmentation.reshape(t * h, w).astype(dtype))
-
-
-def decode_segmentation(data: bytes, num_frames: int) -> np.ndarray:
-    """Inverse of `encode_segmentation`: int32 (T,H,W)."""
-    image = _decode_png(data)
-    if image.ndim != 2 or image.shape[0] % num_frames:
-        raise ValueError(f"segmentation image {image.shape} does not hold {num_frames} frames")
-    return image.astype(np.int32).reshape(num_frames, -1, image.shape[1])
-
-
-# --- JSON ---------------------------------------------------------------------------------------
-
-
-def to_json_bytes(value: Any) -> bytes:
-    """UTF-8 JSON; numpy scalars and arrays become numbers and lists, tuples become lists."""
-    return json.dumps(value, default=json_default, ensure_ascii=False).encode("utf-8")
 
 
 # --- scenes -------------------------------------------------------------------------------------
@@ -191,10 +41,8 @@ def _check_scene(scene: Scene) -> None:
     """Raise ValueError if an array field breaks the contract's dtype or rank (a generator bug)."""
     for name, (dtype, ndim) in ARRAY_FIELDS.items():
         value = getattr(scene, name)
-        if value is None:
-            continue
-        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.ndim != ndim:
-            got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value)
+        got = None if value is None else wrong_layout(name, value)
+        if got is not None:
             raise ValueError(f"Scene.{name} must be a {dtype} array of rank {ndim}, got {got}")
     frames = {name: getattr(scene, name).shape[0] for name in ("rgb", "intrinsics", "cam_to_world")}
     if len(set(frames.values())) != 1:
@@ -213,17 +61,8 @@ def encode_scene(scene: Scene, key: str) -> dict[str, Any]:
     sample: dict[str, Any] = {"__key__": key}
     for name in Scene.field_names():
         value = getattr(scene, name)
-        if value is None:
-            continue
-        if name == "rgb":
-            data = encode_rgb(value)
-        elif name == "segmentation":
-            data = encode_segmentation(value)
-        elif name in JSON_FIELDS:
-            data = to_json_bytes(value)
-        else:
-            data = encode_array(value)
-        sample[member_suffix(name)] = data
+        if value is not None:
+            sample[member_suffix(name)] = encode_field(name, value)
     meta = sample.pop(member_suffix("meta"), None)
     sums = {suffix: crc32(data) for suffix, data in sample.items() if suffix != "__key__"}
     if meta is not None:
@@ -232,11 +71,6 @@ def encode_scene(scene: Scene, key: str) -> dict[str, Any]:
     if meta is not None:
         sample[member_suffix("meta")] = meta  # still the last member
     return sample
-
-
-def crc32(data: bytes) -> str:
-    """The CRC-32 (zlib's, as in gzip and zip) of `data` as 8 hex digits; ~0.5 ms per MB."""
-    return f"{zlib.crc32(data):08x}"
 
 
 def verify_checksums(sample: dict[str, Any]) -> bool:
@@ -320,16 +154,8 @@ def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) ->
             data = sample.get(suffix)
             if name not in wanted or data is None:
                 values[name] = None
-            elif suffix == FORMAT_1_RGB:
-                values[name] = decode_rgb_png(data, num_frames)
-            elif name == "rgb":
-                values[name] = decode_rgb(data, num_frames)
-            elif name == "segmentation":
-                values[name] = decode_segmentation(data, num_frames)
-            elif name in JSON_FIELDS:
-                values[name] = json.loads(bytes(data).decode("utf-8"))
             else:
-                values[name] = decode_array(data)
+                values[name] = decode_field(name, suffix, data, num_frames)
     except (ValueError, TypeError, zlib.error, UnicodeDecodeError) as exc:
         raise UserError(f"scene {key!r}{where}: member {suffix!r} is corrupt ({exc}); {REGENERATE}"
                         ) from exc

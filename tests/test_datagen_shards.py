@@ -9,10 +9,10 @@ import pytest
 
 from c4d_core.errors import UserError
 from datagen import Scene, read_scenes
+from datagen.codecs import ARRAY_FIELDS, decode_array, encode_array
 from datagen.jobs import ShardPlan, resolve_task
 from datagen.shards import (
-    ARRAY_FIELDS, ShardWriter, decode_array, decode_scene, encode_array, encode_scene,
-    iter_samples, list_shards, scene_key,
+    ShardWriter, decode_scene, encode_scene, iter_samples, list_shards, scene_key,
 )
 
 

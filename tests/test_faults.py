@@ -35,7 +35,8 @@ import pytest
 import torch
 
 from c4d.cli import main
-from datagen.shards import CHECKSUMS, ShardWriter, decode_scene, iter_samples
+from datagen.codecs import CHECKSUMS
+from datagen.shards import ShardWriter, decode_scene, iter_samples
 from dynpt.checkpoint import save_checkpoint
 from dynpt.model import build_model
 from c4d_core.config import load_config
