@@ -198,6 +198,12 @@ def rescale_pixels(coords, scale, inverse: bool = False):
     return (coords + 0.5) * scale - 0.5
 
 
+def swap_track_axes(array):
+    """Point tracks between the two layouts, a view: point-major (N,T,...) as datagen stores them
+    (tracks (N,T,2), flags (N,T)) <-> time-major (T,N,...) as the tracker works."""
+    return array.swapaxes(0, 1)
+
+
 def unproject_depth_map(depth: np.ndarray, intrinsics: np.ndarray,
                         cam_to_world: np.ndarray) -> np.ndarray:
     """z-depth map (H,W) -> world points (H,W,3) at every pixel centre."""

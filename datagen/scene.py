@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from c4d_core.geometry import swap_track_axes
+
 
 @dataclass
 class Scene:
@@ -45,6 +47,13 @@ class Scene:
     @property
     def num_tracks(self) -> int:
         return int(self.tracks.shape[0])
+
+    def tracks_time_major(self, frames: slice = slice(None)) -> dict[str, np.ndarray | None]:
+        """The tracker's layout of `frames`: `tracks` float32 (T,N,2), `occluded` bool (T,N) and
+        `moving` bool (T,N) (None without the labels); views of the scene's arrays, no copies."""
+        return {"tracks": swap_track_axes(self.tracks)[frames],
+                "occluded": swap_track_axes(self.occluded)[frames],
+                "moving": None if self.moving is None else swap_track_axes(self.moving)[frames]}
 
     @classmethod
     def field_names(cls) -> list[str]:

@@ -69,12 +69,7 @@ def choose_clip(scene: Scene, num_frames: int, max_stride: int, rng: np.random.G
     stride = int(rng.integers(1, max(1, min(max_stride, (total - 1) // max(num_frames - 1, 1))) + 1))
     start = int(rng.integers(0, total - (num_frames - 1) * stride))
     frames = slice(start, start + (num_frames - 1) * stride + 1, stride)  # T frames, views
-    return {
-        "rgb": scene.rgb[frames],
-        "tracks": scene.tracks[:, frames].transpose(1, 0, 2),  # (T,N,2)
-        "occluded": scene.occluded[:, frames].T,  # (T,N)
-        "moving": scene.moving[:, frames].T,  # (T,N)
-    }
+    return {"rgb": scene.rgb[frames], **scene.tracks_time_major(frames)}
 
 
 def sample_tracks(clip: dict, num_tracks: int, random_query_fraction: float,

@@ -21,6 +21,7 @@ import numpy as np
 from c4d_core.draw import contact_sheet, draw_tracks_enlarged
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
+from c4d_core.geometry import swap_track_axes
 from datagen.shards import decode_scene, iter_samples, list_shards, lost_scenes
 from dynpt.augment import resize_clip
 from dynpt.metrics import dynamic_accuracy, paired_bootstrap_interval, tapvid_metrics
@@ -48,8 +49,7 @@ def track_kinds(scene) -> np.ndarray | None:
 
 def scene_item(scene, index: int, eval_cfg) -> dict:
     """A datagen Scene -> an evaluation item at the eval resolution with `num_tracks` tracks."""
-    clip = {"rgb": scene.rgb, "tracks": scene.tracks.transpose(1, 0, 2),
-            "occluded": scene.occluded.T, "moving": None if scene.moving is None else scene.moving.T}
+    clip = {"rgb": scene.rgb, **scene.tracks_time_major()}
     size = tuple(eval_cfg.resolution)
     if scene.rgb.shape[1:3] != size:
         clip = resize_clip(clip, size)
@@ -136,11 +136,12 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
         if tracked is None:
             continue
         query_points, index, result = tracked
-        gt_tracks = item["tracks"][:, index].transpose(1, 0, 2)[None]  # (1,M,T,2)
-        gt_occ = item["occluded"][:, index].T[None]  # (1,M,T)
+        gt_tracks = swap_track_axes(item["tracks"][:, index])[None]  # (1,M,T,2)
+        gt_occ = swap_track_axes(item["occluded"][:, index])[None]  # (1,M,T)
+        pred_occ = ~swap_track_axes(result.visible)[None]  # (1,M,T)
         with np.errstate(invalid="ignore", divide="ignore"):
-            metrics = tapvid_metrics(query_points[None], gt_occ, gt_tracks, ~result.visible.T[None],
-                                     result.tracks.transpose(1, 0, 2)[None], query_mode)
+            metrics = tapvid_metrics(query_points[None], gt_occ, gt_tracks, pred_occ,
+                                     swap_track_axes(result.tracks)[None], query_mode)
         row = {"name": item["name"], "num_queries": int(len(index)),
                **{k: float(v[0]) for k, v in metrics.items()}}
         if item["moving"] is not None:

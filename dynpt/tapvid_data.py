@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from c4d_core.errors import UserError
+from c4d_core.geometry import swap_track_axes
 
 QUERY_STRIDE = 5  # the benchmark's 'strided' mode queries every 5th frame
 
@@ -47,8 +48,8 @@ def tapvid_item(name: str, entry: dict, size: tuple[int, int] = (256, 256)) -> d
         frames = np.stack([cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA) for f in frames])
     points = np.asarray(entry["points"], np.float64)  # (N,T,2) in [0,1]
     tracks = points * np.array([w, h]) - 0.5  # pixel centres at integers
-    return {"name": name, "video": frames, "tracks": tracks.transpose(1, 0, 2).astype(np.float32),
-            "occluded": np.asarray(entry["occluded"], bool).T, "moving": None}
+    return {"name": name, "video": frames, "tracks": swap_track_axes(tracks).astype(np.float32),
+            "occluded": swap_track_axes(np.asarray(entry["occluded"], bool)), "moving": None}
 
 
 def read_tapvid(source: str | Path, size: tuple[int, int] = (256, 256)) -> Iterator[dict]:

@@ -85,3 +85,26 @@ def test_rescale_pixels_keeps_pixel_centres_for_numpy_and_torch():
     np.testing.assert_array_equal(geometry.rescale_pixels(torch.from_numpy(tracks[..., 0]), 0.7,
                                                           inverse=True).numpy(),
                                   geometry.rescale_pixels(tracks[..., 0], np.float32(0.7), inverse=True))
+
+
+def test_swap_track_axes_and_the_scene_accessor_give_time_major_views():
+    from datagen.scene import Scene
+
+    rng = np.random.default_rng(1)
+    tracks = rng.normal(size=(5, 7, 2)).astype(np.float32)  # (N,T,2)
+    occluded, moving = rng.random((5, 7)) < 0.3, rng.random((5, 7)) < 0.5  # (N,T)
+    swapped = geometry.swap_track_axes(tracks)
+    assert swapped.shape == (7, 5, 2) and np.shares_memory(swapped, tracks)
+    np.testing.assert_array_equal(swapped[3, 2], tracks[2, 3])
+    np.testing.assert_array_equal(geometry.swap_track_axes(swapped), tracks)
+    fields = dict.fromkeys(Scene.field_names())
+    fields.update(rgb=np.zeros((7, 4, 4, 3), np.uint8), tracks=tracks, occluded=occluded, moving=moving,
+                  meta={})
+    scene = Scene(**fields)
+    clip = scene.tracks_time_major(slice(1, 7, 2))  # frames 1, 3, 5
+    np.testing.assert_array_equal(clip["tracks"], tracks[:, 1::2].transpose(1, 0, 2))
+    np.testing.assert_array_equal(clip["occluded"], occluded[:, 1::2].T)
+    np.testing.assert_array_equal(clip["moving"], moving[:, 1::2].T)
+    assert all(np.shares_memory(clip[k], a) for k, a in (("tracks", tracks), ("occluded", occluded)))
+    scene.moving = None
+    assert scene.tracks_time_major()["moving"] is None
