@@ -134,6 +134,20 @@ def test_write_video_round_trip(tmp_path, suffix):
     )
 
 
+def test_write_user_video_turns_failures_into_one_user_error(tmp_path):
+    import dynpt
+    from c4d_core.errors import UserError
+
+    with pytest.raises(ValueError, match="unknown video extension '.mov'"):
+        video.write_video(tmp_path / "clip.mov", _gray_video())
+    with pytest.raises(UserError, match=r"cannot write video '.*clip\.mov': unknown video extension"):
+        video.write_user_video(tmp_path / "clip.mov", _gray_video())
+    with pytest.raises(UserError, match=r"cannot write video '.*clip\.gif': frames must be uint8"):
+        video.write_user_video(tmp_path / "clip.gif", _gray_video().astype(np.float32))
+    assert dynpt.write_video is video.write_user_video and dynpt.read_video is video.read_video
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_write_image_rgb_order(tmp_path):
     image = np.zeros((4, 6, 3), np.uint8)
     image[..., 0] = 200
