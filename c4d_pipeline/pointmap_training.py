@@ -40,7 +40,7 @@ from c4d_core.errors import UserError
 from c4d_core.files import append_line, write_text
 from c4d_pipeline.ground_truth import GroundTruthPointmaps
 from datagen.shards import read_scenes
-from dynpt.checkpoint import read_tensor_file, save_atomic
+from dynpt.torch_files import read_tensor_file, save_atomic
 from dynpt.dust3r.net import Dust3rConfig, Dust3rNet
 from dynpt.train import remove_temporaries, repair_log
 

@@ -28,7 +28,7 @@ import torch.nn.functional as F
 
 from c4d_core.errors import UserError
 from c4d_pipeline.flow_inputs import check_flow_inputs
-from dynpt.checkpoint import read_tensor_file
+from dynpt.torch_files import read_tensor_file
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,6 @@ Layout (a `torch.save`d dict, readable with `torch.load(weights_only=True)`):
 
 from __future__ import annotations
 
-import errno
 import logging
 import os
 from pathlib import Path
@@ -22,9 +21,8 @@ import torch
 from torch import nn
 
 from c4d_core.errors import UserError
-from c4d_core.files import atomic_path, disk_error
-from dynpt.dust3r.checkpoint import load_failure, require_file
 from dynpt.model import DynPT, build_model, plain_config
+from dynpt.torch_files import load_failure, require_file, save_atomic
 
 log = logging.getLogger(__name__)
 
@@ -42,34 +40,6 @@ def save_checkpoint(path: str | os.PathLike, model: DynPT, step: int, extra: dic
     payload = {"format": FORMAT, "config": model.config, "model": state, "step": int(step),
                "extra": extra or {}}
     return save_atomic(path, payload)
-
-
-def save_atomic(path: str | os.PathLike, payload) -> Path:
-    """`torch.save(payload)` to `path` atomically; a failed write (disk full) is a `UserError`."""
-    path = Path(path)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a handle: no temporary name inside
-        try:
-            torch.save(payload, fh)
-        except RuntimeError as exc:  # PyTorch's writer turns the OSError of a full disk into this
-            cause = exc.__cause__ or exc.__context__
-            if isinstance(cause, OSError) and cause.errno is not None:
-                raise disk_error(path, cause) from exc
-            if "write" not in str(exc).lower():
-                raise
-            raise disk_error(path, OSError(errno.ENOSPC, "the file could not be written")) from exc
-    return path
-
-
-def read_tensor_file(path: Path, kind: str, missing_hint: str, damaged_hint: str):
-    """`torch.load(path, weights_only=True)` on the CPU; a missing or unreadable file is a one-line
-    `UserError` ("<kind> checkpoint ... does not exist; <missing_hint>" / "...; <damaged_hint>");
-    a folder is named as one."""
-    require_file(path, f"{kind} checkpoint", missing_hint)
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
-        raise UserError(f"cannot read {str(path)!r} as a {kind} checkpoint "
-                        f"({load_failure(exc, path)}); {damaged_hint}") from exc
 
 
 def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -> dict:

@@ -45,7 +45,7 @@ import torch
 
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
-from dynpt.checkpoint import read_tensor_file
+from dynpt.torch_files import read_tensor_file
 from dynpt.model import build_model, plain_config
 
 log = logging.getLogger(__name__)

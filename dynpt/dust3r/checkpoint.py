@@ -13,19 +13,17 @@ only if the file holds other Python objects (older training checkpoints) does it
 full unpickler (`weights_only=False`, which can run code stored in the file). The project only ever
 loads files the user names on the command line, never downloads any.
 
-`require_file` and `load_failure` are shared by every checkpoint reader (DynPT, CoTracker3, RAFT,
-DUSt3R): a folder or a missing path named as such, and why `torch.load` failed in a few words.
+A folder or a missing path, and why `torch.load` failed, are named as every reader of the project
+names them (`dynpt.torch_files`).
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
-import errno
 import logging
 import math
 import pickle
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,6 +31,7 @@ from typing import Any
 import torch
 
 from c4d_core.errors import UserError
+from dynpt.torch_files import holds_objects, load_failure, require_file
 
 log = logging.getLogger(__name__)
 
@@ -99,45 +98,6 @@ def parse_constructor(text: str) -> tuple[str, dict[str, Any]]:
             raise ValueError("constructor string uses **kwargs, which is not supported")
         kwargs[keyword.arg] = _literal(keyword.value, text)
     return call.func.id, kwargs
-
-
-def require_file(path: Path, what: str, missing_hint: str) -> None:
-    """`UserError` unless `path` is a file: a folder is named as one (with the checkpoint files
-    in it or one level down), a missing path says so and adds `missing_hint`."""
-    if path.is_dir():
-        inside = [str(p.relative_to(path)) for pattern in ("*.pt", "*.pth", "*/*.pt", "*/*.pth")
-                  for p in sorted(path.glob(pattern))]
-        held = f" (it holds {', '.join(inside[:3])})" if inside else ""
-        raise UserError(f"{what} {str(path)!r} is a folder, not a file{held}; pass the checkpoint "
-                        "file inside it")
-    if not path.is_file():
-        raise UserError(f"{what} {str(path)!r} does not exist; {missing_hint}")
-
-
-def holds_objects(exc: Exception) -> bool:
-    """Whether a tensor-only `torch.load` failed on a Python object it may not build (a pickled
-    class), rather than on bytes that are no pickle at all."""
-    return isinstance(exc, pickle.UnpicklingError) and bool(
-        re.search(r"Unsupported global|GLOBAL ", str(exc)))
-
-
-def load_failure(exc: Exception, path: Path) -> str:
-    """Why `torch.load(path, weights_only=True)` failed, in a few words. PyTorch's own text is never
-    passed on: it advises loading with weights_only=False (unsafe for a file of unknown origin),
-    carries terminal colour codes, and says "weights_only" even for random bytes."""
-    if holds_objects(exc):
-        found = re.search(r"GLOBAL ([\w.]+)", str(exc))
-        return ("it holds Python objects other than tensors and plain values"
-                + (f" ({found[1]})" if found else ""))
-    if isinstance(exc, OSError) and exc.errno not in (None, errno.EINVAL) and exc.strerror:
-        return exc.strerror  # the file itself cannot be read (permissions, I/O error)
-    try:
-        size = f"{path.stat().st_size} bytes"
-    except OSError:
-        size = "size unknown"
-    # zip or pickle errors, EOF, EINVAL (a zip cut inside a record), miniz's "failed finding
-    # central directory", an unknown pickle opcode: all a file cut short or of another kind
-    return f"not a PyTorch file, or truncated ({size})"
 
 
 def _torch_load(path: Path, map_location: Any) -> Any:
