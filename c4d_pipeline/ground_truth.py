@@ -265,11 +265,12 @@ def oracle_tracks(scene: Scene) -> TrackResult:
     if scene.moving is None:
         raise UserError("the scene has no mobility labels; generate it with a preset that labels motion")
     n = np.arange(scene.num_tracks)
+    clip = scene.tracks_time_major()  # (T,N,...) views
     return TrackResult(
-        tracks=scene.tracks.transpose(1, 0, 2).astype(np.float32),
-        visible=~scene.occluded.T,
-        confidence=np.ones(scene.occluded.T.shape, np.float32),
-        moving=scene.moving.T.astype(np.float32),
+        tracks=clip["tracks"].astype(np.float32),
+        visible=~clip["occluded"],
+        confidence=np.ones(clip["occluded"].shape, np.float32),
+        moving=clip["moving"].astype(np.float32),
         queries=np.stack([scene.query_frame, *scene.tracks[n, scene.query_frame].T], -1).astype(np.float32),
     )
 

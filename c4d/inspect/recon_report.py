@@ -48,7 +48,7 @@ def overview_video(recon: Reconstruction, cfg) -> np.ndarray | None:
     panels, labels = [frames], ["frames"]
     tracks = recon.tracks_2d
     if tracks is not None and {"tracks", "visible"} <= set(tracks) and len(tracks["tracks"]) == len(frames):
-        scaled = (tracks["tracks"] + 0.5) * factor - 0.5  # (T,N,2) on the upscaled grid
+        scaled = geometry.rescale_pixels(tracks["tracks"], factor)  # (T,N,2) on the upscaled grid
         panels[0] = draw.draw_tracks(frames, scaled, tracks["visible"], tracks.get("moving"),
                                      radius=max(1.5, cfg.track_radius * max(frames.shape[1:3])))
         labels[0] = "frames + tracks"
