@@ -20,7 +20,12 @@ from dynpt.embeddings import sincos_time_embedding
 
 
 class Attention(nn.Module):
-    """Multi-head attention of x (B,L,D) over context (B,S,Dc) (self-attention when context is x)."""
+    """Multi-head attention of x (B,L,D) over context (B,S,Dc) (self-attention when context is x).
+
+    Keys as CoTracker3 releases them (`to_q`, `to_kv`, `to_out`), so its weights load by name.
+    DUSt3R's attention (`dynpt.dust3r.vit_encoder.Attention`) is not a twin: its released layout is
+    a fused `qkv` and `proj`, with RoPE on q and k, and its MLP uses the exact GELU (here tanh).
+    """
 
     def __init__(self, dim: int, num_heads: int, context_dim: int | None = None):
         super().__init__()
