@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from c4d.inspect import dataset_report, point_render
+from c4d.inspect import dataset_check, dataset_report, point_render
 from c4d_core import geometry
 from datagen import shards
 from timing import median_seconds
@@ -38,7 +38,7 @@ def bench_statistics_pass(num_scenes: int, size: int, frames: int, repeats: int)
                 writer.write(shards.encode_scene(scene, shards.scene_key("train", i)))
 
         def read(fields):
-            for sample in dataset_report.iter_dataset(tmp, fields=fields):
+            for sample in dataset_check.iter_dataset(tmp, fields=fields):
                 dataset_report.scene_statistics(sample.scene)
 
         full = median_seconds(lambda: read(None), repeats) / num_scenes

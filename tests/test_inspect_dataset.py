@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from c4d.cli import main
-from c4d.inspect import dataset_report
+from c4d.inspect import dataset_check, dataset_report
 from c4d_core.config import load_config
 from c4d_core.video import read_video_frames
 from tests.synthetic_scenes import make_box_scene
@@ -69,7 +69,7 @@ def test_report_counts_plots_and_sample_pictures(shard_dir, tmp_path):
 
 
 def test_tracks_are_drawn_by_mobility_in_the_sample_video(shard_dir):
-    scene = next(iter(dataset_report.iter_dataset(shard_dir))).scene
+    scene = next(iter(dataset_check.iter_dataset(shard_dir))).scene
     panels, labels = dataset_report.scene_panels(scene, CFG)
     assert labels == ["rgb + tracks", "depth", "segmentation", "flow_fwd"]
     n, t = np.argwhere(scene.moving & ~scene.occluded)[0]  # a visible moving point
@@ -90,7 +90,7 @@ def test_scene_detail_mode(shard_dir, tmp_path):
 
 def test_validate_scene_finds_each_kind_of_problem():
     scene = _scene(0)
-    assert dataset_report.validate_scene(scene, CFG) == []
+    assert dataset_check.validate_scene(scene, CFG) == []
     bad = dataclasses.replace(
         scene,
         depth=scene.depth[:, :, :-1],
@@ -100,7 +100,7 @@ def test_validate_scene_finds_each_kind_of_problem():
         occluded=scene.occluded.copy(),
     )
     bad.occluded[0, bad.query_frame[0]] = True
-    problems = " | ".join(dataset_report.validate_scene(bad, CFG))
+    problems = " | ".join(dataset_check.validate_scene(bad, CFG))
     for expected in ("depth is float32 (8, 48, 63), expected float32 (8, 48, 64)",
                      "segmentation ids span [0, 7], outside [0, 3]",
                      "tracks has 16 NaN",
@@ -126,7 +126,7 @@ def test_check_reports_every_bad_scene_and_shard_without_stopping(shard_dir, tmp
     truncated = (folder / "train-000000.tar").read_bytes()
     (folder / "train-000000.tar").write_bytes(truncated[: int(len(truncated) * 0.7)])
 
-    result = dataset_report.check_dataset(folder, CFG, progress=False)
+    result = dataset_check.check_dataset(folder, CFG, progress=False)
     by_key = {}
     for shard, key, problem in result.problems:
         by_key.setdefault(key, []).append((Path(shard).name, problem))

@@ -96,7 +96,7 @@ def _run_reconstruction(args, cfg) -> int:
 
 
 def _run_check(args, cfg) -> int:
-    from c4d.inspect.dataset_report import check_dataset
+    from c4d.inspect.dataset_check import check_dataset
 
     result = check_dataset(args.source, cfg, args.split, progress=not args.no_progress)
     for shard, key, problem in result.problems:

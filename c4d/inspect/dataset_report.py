@@ -1,214 +1,29 @@
-"""Reports on a shard set: statistics, distributions, pictures and videos of scenes, validation.
+"""Reports on a shard set: statistics, distributions, pictures and videos of scenes.
 
-Three jobs, each streaming scene by scene (memory stays at one scene):
+Two jobs, each streaming scene by scene through `dataset_check.iter_dataset` (memory stays at one
+scene):
 - `build_dataset_report`: counts and distributions (objects per scene, visible and moving
   fractions, camera speed, blur, track lengths) as plots, plus a contact sheet and a video of the
   first `samples` scenes (config key) showing RGB with tracks | depth | segmentation | flow, tied together
   by `index.html`.
-- `build_scene_report`: one scene in detail (every frame, object table, per-track curves).
-- `check_dataset`: decode every sample and list every problem (corrupt member, truncated shard,
-  wrong shape or dtype, non-finite values, ids out of range, occluded at query, mobility label
-  disagreeing with the displacement), naming shard and scene key, without stopping at the first.
+- `build_scene_report`: one scene in detail (every frame, object table, per-track curves) and its
+  validation (`dataset_check.validate_scene`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from c4d.inspect import html, plots
+from c4d.inspect.dataset_check import iter_dataset, validate_scene
 from c4d_core import draw
 from c4d_core.errors import UserError
 from c4d_core.files import make_folder, write_json
 from c4d_core.video import write_image, write_video
-from datagen import shards
 from datagen.scene import Scene
-
-# --------------------------------------------------------------------------------------------
-# Reading
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Sample:
-    """One sample of a shard set: where it is, and its Scene or the reason it could not be read."""
-
-    shard: str
-    key: str
-    scene: Scene | None
-    error: str | None = None
-    verified: bool = True  # False: the sample carries no checksums (format 2 or older)
-
-
-def iter_dataset(source, split: str | None = None, fields=None, full_first: int = 0) -> Iterator[Sample]:
-    """Every sample of `source` (anything `datagen.read_scenes` accepts), in reading order.
-
-    `fields`: decode only these Scene fields (default all), except for the first `full_first`
-    samples, which are decoded in full. A corrupt sample or a truncated shard yields a `Sample`
-    with `error` set, and reading goes on with the next sample or shard.
-    """
-    count = 0
-    for shard in shards.list_shards(source, split):
-        try:
-            for raw in shards.iter_samples(shard):
-                wanted = None if count < full_first else fields
-                count += 1
-                verified = shards.CHECKSUMS in raw
-                try:
-                    scene = shards.decode_scene(raw, wanted)
-                except UserError as exc:
-                    yield Sample(str(shard), raw["__key__"], None, str(exc), verified)
-                else:
-                    yield Sample(str(shard), raw["__key__"], scene, None, verified)
-        except UserError as exc:  # the tar itself is truncated or corrupt
-            yield Sample(str(shard), "?", None, str(exc))
-
-
-# --------------------------------------------------------------------------------------------
-# Validation
-# --------------------------------------------------------------------------------------------
-
-
-def _expected_layout(scene: Scene) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
-    """field -> (dtype, shape) that the contract requires, given T, H, W, K and N of the scene."""
-    t, h, w = scene.rgb.shape[:3]
-    k = len(scene.objects) if scene.objects is not None else None
-    n = scene.tracks.shape[0] if isinstance(scene.tracks, np.ndarray) else None
-    f32, i32, boolean = np.dtype(np.float32), np.dtype(np.int32), np.dtype(np.bool_)
-    layout = {
-        "rgb": (np.dtype(np.uint8), (t, h, w, 3)),
-        "depth": (f32, (t, h, w)),
-        "segmentation": (i32, (t, h, w)),
-        "flow_fwd": (f32, (t, h, w, 2)),
-        "flow_bwd": (f32, (t, h, w, 2)),
-        "intrinsics": (f32, (t, 3, 3)),
-        "cam_to_world": (f32, (t, 4, 4)),
-        "tracks": (f32, (n, t, 2)),
-    }
-    if k is not None:
-        layout["object_to_world"] = (f32, (k, t, 4, 4))
-    if n is not None:
-        layout |= {
-            "occluded": (boolean, (n, t)),
-            "query_frame": (i32, (n,)),
-            "track_object": (i32, (n,)),
-            "tracks_world": (f32, (n, t, 3)),
-            "displacement": (f32, (n, t)),
-            "moving": (boolean, (n, t)),
-        }
-    return layout
-
-
-def validate_scene(scene: Scene, cfg) -> list[str]:
-    """Every way `scene` breaks the contract (INTERFACES.md), as short sentences; [] if none.
-
-    `cfg`: the inspect config (`configs/inspect/default.yaml`), for its `check` tolerances.
-    """
-    required = ("rgb", "intrinsics", "cam_to_world", "objects", "tracks", "occluded",
-                "query_frame", "track_object")
-    if isinstance(scene.meta, dict) and scene.meta.get("generator") == "datagen":
-        required = tuple(Scene.field_names())  # every datagen preset produces every field
-    missing = [name for name in required if getattr(scene, name) is None]
-    if missing:
-        return [f"required fields are missing (truncated sample?): {', '.join(missing)}"]
-    if not isinstance(scene.rgb, np.ndarray) or scene.rgb.ndim != 4:
-        return [f"rgb must be (T,H,W,3), got {getattr(scene.rgb, 'shape', type(scene.rgb))}"]
-
-    problems = []
-    wrong_layout = set()
-    for name, (dtype, shape) in _expected_layout(scene).items():
-        value = getattr(scene, name)
-        if value is None:
-            continue
-        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != shape:
-            got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value).__name__
-            problems.append(f"{name} is {got}, expected {dtype} {shape}")
-            wrong_layout.add(name)
-    ok = {name for name in Scene.field_names() if getattr(scene, name) is not None} - wrong_layout
-
-    for name in ok & {"depth", "flow_fwd", "flow_bwd", "intrinsics", "cam_to_world",
-                      "object_to_world", "tracks", "tracks_world", "displacement"}:
-        bad = int((~np.isfinite(getattr(scene, name))).sum())
-        if bad:
-            problems.append(f"{name} has {bad} NaN or infinite values")
-    num_frames, num_objects = scene.num_frames, len(scene.objects)
-    if "depth" in ok and (scene.depth[np.isfinite(scene.depth)] <= 0).any():
-        problems.append("depth has values <= 0")
-    if "segmentation" in ok:
-        low, high = int(scene.segmentation.min()), int(scene.segmentation.max())
-        if low < 0 or high > num_objects:
-            problems.append(f"segmentation ids span [{low}, {high}], outside [0, {num_objects}]")
-    if "flow_fwd" in ok and np.abs(scene.flow_fwd[-1]).max() > 0:
-        problems.append("flow_fwd of the last frame is not zero (it has no next frame)")
-    if "flow_bwd" in ok and np.abs(scene.flow_bwd[0]).max() > 0:
-        problems.append("flow_bwd of the first frame is not zero (it has no previous frame)")
-    if "cam_to_world" in ok and np.isfinite(scene.cam_to_world).all():
-        rot = scene.cam_to_world[:, :3, :3].astype(np.float64)
-        error = np.abs(np.swapaxes(rot, 1, 2) @ rot - np.eye(3)).max()
-        if error > cfg.check.rotation_tolerance or np.abs(scene.cam_to_world[:, 3] - [0, 0, 0, 1]).max() > 0:
-            problems.append(f"cam_to_world is not rigid (|R^T R - I| = {error:.2g})")
-    if "intrinsics" in ok and (scene.intrinsics[:, [0, 1], [0, 1]] <= 0).any():
-        problems.append("intrinsics have a focal length <= 0")
-    if "track_object" in ok and scene.num_tracks:
-        low, high = int(scene.track_object.min()), int(scene.track_object.max())
-        if low < 0 or high > num_objects:
-            problems.append(f"track_object spans [{low}, {high}], outside [0, {num_objects}]")
-    if {"query_frame", "occluded"} <= ok and scene.num_tracks:
-        queries = scene.query_frame
-        if queries.min() < 0 or queries.max() >= num_frames:
-            problems.append(f"query_frame spans [{queries.min()}, {queries.max()}], "
-                            f"outside [0, {num_frames - 1}]")
-        else:
-            hidden = int(scene.occluded[np.arange(scene.num_tracks), queries].sum())
-            if hidden:
-                problems.append(f"{hidden} tracks are occluded at their query frame")
-    if {"moving", "displacement"} <= ok:
-        threshold = float(scene.meta.get("mobility_threshold", cfg.check.mobility_threshold))
-        disagree = int((scene.moving != (scene.displacement > threshold)).sum())
-        if disagree:
-            problems.append(f"moving disagrees with displacement > {threshold} at {disagree} points")
-    if "displacement" in ok and (scene.displacement < 0).any():
-        problems.append("displacement has negative values")
-    return problems
-
-
-@dataclass
-class CheckResult:
-    """Outcome of `check_dataset`: number of samples read and every problem found."""
-
-    num_samples: int
-    problems: list[tuple[str, str, str]]  # (shard, scene key, problem)
-    num_unverified: int = 0  # samples without checksums (shards of format 2 or older)
-
-    @property
-    def num_bad_samples(self) -> int:
-        return len({(shard, key) for shard, key, _ in self.problems})
-
-
-def check_dataset(source, cfg, split: str | None = None, progress: bool = True) -> CheckResult:
-    """Decode and validate every sample of `source`; never stops at the first problem. A shard
-    that the dataset file of a `source` folder lists but that is absent is a problem too."""
-    problems: list[tuple[str, str, str]] = []
-    if isinstance(source, (str, Path)) and Path(source).is_dir():
-        for path in shards.missing_shards(shards.list_shards(source, split)):
-            held = shards.scenes_in_shard(path)
-            problems.append((str(path), "?", f"the shard is missing ({held or '?'} scenes), "
-                             "though the dataset file beside it lists it; rerun the same "
-                             "`c4d datagen` command to write it"))
-    count = unverified = 0
-    for sample in tqdm(iter_dataset(source, split), desc="check", unit="scene", disable=not progress):
-        count += 1
-        unverified += not sample.verified
-        if sample.error is not None:
-            problems.append((sample.shard, sample.key, sample.error))
-            continue
-        problems += [(sample.shard, sample.key, p) for p in validate_scene(sample.scene, cfg)]
-    return CheckResult(count, problems, unverified)
-
 
 # --------------------------------------------------------------------------------------------
 # Statistics
@@ -339,7 +154,7 @@ def build_dataset_report(source, out: str | Path, cfg, split: str | None = None,
     shard set into `out`.
 
     Returns the summary (also written to `out/summary.json`). Unreadable samples are skipped,
-    counted and listed; `check_dataset` explains them in full.
+    counted and listed; `dataset_check.check_dataset` explains them in full.
     """
     out = make_folder(out)
     values: dict[str, list[np.ndarray]] = {name: [] for name in STATISTICS}
