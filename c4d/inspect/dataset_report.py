@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from c4d.inspect import html, plots
 from c4d.inspect.dataset_check import iter_dataset, validate_scene
-from c4d_core import draw
+from c4d_core import draw, geometry
 from c4d_core.errors import UserError
 from c4d_core.files import make_folder, write_json
 from c4d_core.video import write_image, write_video
@@ -89,11 +89,11 @@ def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
     moved to the scaled pixel grid (centres at integers: x' = (x + 0.5) f - 0.5).
     """
     factor = draw.display_scale(scene.rgb.shape[1], cfg.min_panel_height)
-    tracks = (scene.tracks.transpose(1, 0, 2) + 0.5) * factor - 0.5  # (T,N,2)
-    moving = None if scene.moving is None else scene.moving.T  # (T,N)
+    clip = scene.tracks_time_major()  # tracks (T,N,2), occluded and moving (T,N)
+    tracks = geometry.rescale_pixels(clip["tracks"], factor)
     radius = max(1.5, cfg.track_radius * factor * max(scene.image_size))
-    panels = [draw.draw_tracks(draw.upscale(scene.rgb, factor), tracks, ~scene.occluded.T, moving,
-                               radius=radius)]
+    panels = [draw.draw_tracks(draw.upscale(scene.rgb, factor), tracks, ~clip["occluded"],
+                               clip["moving"], radius=radius)]
     labels = ["rgb + tracks"]
     for name, colorize in (("depth", draw.colorize_depth),
                            ("segmentation", draw.colorize_segmentation),
