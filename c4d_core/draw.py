@@ -198,8 +198,7 @@ def draw_tracks(
     Layout is time first, like the tracker's output: `tracks` float (T,N,2) as (x, y) pixels with
     pixel centres at integer coordinates; `visible` bool (T,N) (default all visible); `moving`
     (T,N) bool or probability (default None: one fixed colour per track instead of mobility).
-    A `Scene` stores tracks as (N,T,2): pass `scene.tracks.transpose(1, 0, 2)`,
-    `~scene.occluded.T`, `scene.moving.T`.
+    A `Scene` stores tracks as (N,T,2): `scene.tracks_time_major()` gives this layout.
 
     Visible points are filled dots with a dark rim; occluded points are hollow rings, or left out
     when `show_occluded` is False. `trail` > 0 draws each track's last `trail` visible steps as a
