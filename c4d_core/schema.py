@@ -7,8 +7,9 @@ together:
     may only set keys it has;
   - `RULES[group]` below gives every key's type and valid range, checked when a config is loaded,
     before any command creates a folder or writes a file. A wrong value is one `UserError` line
-    naming the key, the value and the valid range.
-The two list exactly the same keys (a test walks them). Code that keeps a section in a dataclass
+    naming the key, the value and the valid range. A rule `SECTION.*` covers every key of a
+    section that code extends (`weights.*`: one per registered C4D objective).
+The two list the same keys, a family rule standing for its section's keys (a test walks them). Code that keeps a section in a dataclass
 takes the field names and defaults from the root preset (`section_defaults`), never its own.
 
 To add a key: put it with its default and a comment into the root preset, and its rule here.
@@ -306,8 +307,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "optim.lr_min": number(0.0), "optim.schedule": text("constant", "linear", "cosine"),
         "optim.betas": numbers(2, low=0.0, high=0.999999), "optim.shared_focal": flag(),
         "optim.world_scale": number(0.0), "optim.edge_chunk": POSITIVE,
-        "weights.ga": number(0.0), "weights.cma": number(0.0), "weights.cts": number(0.0),
-        "weights.pts": number(0.0),
+        "weights.*": number(0.0),  # every C4D objective's weight (c4d_pipeline.objectives)
         "cma.reference_size": POSITIVE, "cma.max_px": number(above=0),
         "pts.window": COUNT, "pts.extend": POSITIVE, "pts.kernel": COUNT, "pts.lam": number(0.0),
         "pts.knn": COUNT,
@@ -425,12 +425,25 @@ def leaf_keys(cfg: Mapping, prefix: str = "") -> dict[str, Any]:
     return leaves
 
 
+def rule_for(group: str, key: str) -> Rule | None:
+    """The rule of `key` in `group`: its own, else that of its family `SECTION.*` (the keys of a
+    section that code extends, such as `weights.*`: a new entry there needs no rule of its own)."""
+    rules = RULES[group]
+    if key in rules:
+        return rules[key]
+    section = key.rpartition(".")[0]
+    return rules.get(f"{section}.*") if section else None
+
+
 def validate(group: str, cfg: Mapping) -> None:
     """Raise `UserError` (one line: key, value, valid range) unless every value of `cfg`, a plain
     nested dict of group `group`'s keys, is valid."""
-    rules = RULES[group]
     for key, value in leaf_keys(cfg).items():
-        rules[key].check(key, value)
+        rule = rule_for(group, key)
+        if rule is None:
+            raise UserError(f"`{key}` has no rule in the {group} settings schema; add one to "
+                            "c4d_core/schema.py RULES")
+        rule.check(key, value)
     for problem in CROSS_RULES.get(group, lambda _: [])(cfg):
         if problem:
             raise UserError(problem)

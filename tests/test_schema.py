@@ -10,20 +10,42 @@ import yaml
 from c4d.cli import main
 from c4d_core.config import config_dir, load_config, section_defaults, to_dict, to_yaml
 from c4d_core.errors import UserError
-from c4d_core.schema import ROOTS, RULES, leaf_keys, validate
+from c4d_core.schema import ROOTS, RULES, leaf_keys, rule_for, validate
 from c4d_pipeline.motion_mask import MotionMaskConfig
 from dynpt.losses import LossWeights
 
 REPO = Path(__file__).resolve().parents[1]
 
 
+def root_keys(group: str) -> set[str]:
+    """Every key of `group`: the leaves of its root preset."""
+    return set(leaf_keys(to_dict(load_config(group, ROOTS[group]))))
+
+
 @pytest.mark.parametrize("group", sorted(ROOTS))
 def test_every_schema_key_is_in_the_root_preset_and_its_default_is_valid(group):
-    """The rules and the root preset list the same keys, and every default passes its rule."""
-    root = to_dict(load_config(group, ROOTS[group]))
-    keys = set(leaf_keys(root))
-    assert keys == set(RULES[group]), (sorted(keys - set(RULES[group])), sorted(set(RULES[group]) - keys))
-    validate(group, root)
+    """The rules and the root preset list the same keys (a family rule `SECTION.*` standing for
+    the keys of its section, at least one), and every default passes its rule."""
+    keys = root_keys(group)
+    assert sorted(k for k in keys if rule_for(group, k) is None) == []
+    own = {k for k in RULES[group] if not k.endswith(".*")}
+    assert sorted(own - keys) == []
+    families = {k[:-1] for k in RULES[group] if k.endswith(".*")}
+    assert all(any(k.startswith(f) for k in keys) for f in families), families
+    validate(group, to_dict(load_config(group, ROOTS[group])))
+
+
+def test_a_key_without_a_rule_is_refused_and_a_family_rule_covers_its_section():
+    cfg = to_dict(load_config("c4d", "default"))
+    cfg["weights"]["any_new_objective"] = 0.5
+    validate("c4d", cfg)  # `weights.*`: a new objective's weight needs no rule of its own
+    cfg["weights"]["any_new_objective"] = -1
+    with pytest.raises(UserError, match="weights.any_new_objective.*-1"):
+        validate("c4d", cfg)
+    cfg["weights"]["any_new_objective"] = 0.5
+    cfg["optim"]["nope"] = 1
+    with pytest.raises(UserError, match="`optim.nope` has no rule"):
+        validate("c4d", cfg)
 
 
 @pytest.mark.parametrize("group", sorted(ROOTS))
@@ -31,7 +53,7 @@ def test_every_preset_sets_only_schema_keys_and_passes_the_rules(group):
     for path in sorted((config_dir() / group).rglob("*.yaml")):
         if path.parent.name == group:  # presets (model/ holds fragments of dynpt presets)
             cfg = to_dict(load_config(group, path.stem))
-            assert set(leaf_keys(cfg)) == set(RULES[group]), path
+            assert set(leaf_keys(cfg)) == root_keys(group), path
 
 
 @pytest.mark.parametrize("cls, group, section", [
@@ -199,7 +221,7 @@ def _documented_keys():
 def test_docs_and_code_name_only_real_keys():
     """Every `a.b=...` override in README, docs, presets and code names a key (or section) of
     some group's schema (docs/TRAINING.md once named `pointmaps.checkpoint=`, no key then)."""
-    known = {prefix for rules in RULES.values() for key in rules
+    known = {prefix for group in ROOTS for key in root_keys(group)
              for prefix in (".".join(key.split(".")[:n]) for n in range(1, key.count(".") + 2))}
     found = list(_documented_keys())
     assert len(found) > 50  # the pattern finds the overrides
@@ -241,6 +263,7 @@ def test_documented_commands_set_keys_of_their_own_group():
     command's config group (`c4d run ... frames=6` names a datagen key: refused when run)."""
     found = list(_documented_command_keys())
     assert len(found) > 30 and {"train", "eval", "config"} <= {c for _, c, _, _ in found}
+    keys = {group: root_keys(group) for group in ROOTS}
     wrong = [f"{path}: c4d {command} {key}=" for path, command, group, key in found
-             if key not in RULES.get(group, {})]
+             if key not in keys.get(group, set())]
     assert wrong == []
