@@ -48,7 +48,7 @@ class OptimisationResult:
     points: np.ndarray  # (T,H,W,3) world pointmaps
     confidence: np.ndarray  # (T,H,W) max raw confidence over the frame's pairs
     depth_stage1: np.ndarray  # (T,H,W) depth after stage 1 (before PTS)
-    history: dict = field(default_factory=dict)  # seconds and per-iteration losses per stage
+    history: dict = field(default_factory=dict)  # wall and CPU seconds, per-iteration losses per stage
 
 
 def learning_rate(iteration: int, total: int, lr: float, lr_min: float, schedule: str) -> float:
@@ -69,7 +69,7 @@ class _Inputs:
     ei, ej (E,) the edges' frames; views: for view i and view j of every edge, (frames (E,),
     pointmaps (E,3,P) (a transposed view of the pair's (E,P,3) array: no copy), GA weights = log
     confidence (E,P)); with flow: target (E,2,P) pixel + flow i->j, static (E,P) static in frame i
-    and finite flow, num_static. `available`: the observation names the objectives may ask for.
+    and finite flow, num_static, pixels (3,P) the homogeneous pixel grid [u, v, 1]. `available`: the observation names the objectives may ask for.
     """
 
     def __init__(self, pw, flows, static_masks, device):
@@ -84,7 +84,7 @@ class _Inputs:
             for frames, pts, conf in ((self.ei, pw.pts_i, pw.conf_i), (self.ej, pw.pts_j, pw.conf_j))
         ]
         self.available = {"pointmaps"}
-        self.target = self.static = None
+        self.target = self.static = self.pixels = None
         if flows is not None:
             flow = torch.from_numpy(np.ascontiguousarray(flows, dtype=np.float32)).reshape(e, -1, 2)
             finite = torch.isfinite(flow).all(-1)  # (E,P)
@@ -96,6 +96,7 @@ class _Inputs:
             v, u = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
             pixels = torch.stack([u, v], -1).reshape(-1, 2).float()  # (P,2)
             target = pixels + torch.nan_to_num(flow, 0.0, 0.0, 0.0)  # (E,P,2)
+            self.pixels = torch.cat([pixels.T, torch.ones(1, h * w)]).to(device)  # (3,P) [u, v, 1]
             self.target = target.transpose(1, 2).contiguous().to(device)  # (E,2,P)
             self.static = (static & finite).to(device)  # (E,P) static in frame i
             self.num_static = max(int(self.static.sum()), 1)
@@ -150,6 +151,10 @@ def _shared_cam(state):
     return (state.params.camera_points_channels_first(),)  # (T,3,P)
 
 
+def _shared_depth(state):
+    return (state.params.depth().flatten(1),)  # (T,P)
+
+
 def _shared_rotations(state):
     return (state.params.rotations(),)  # (T,3,3) camera-to-world, shared by the terms of an iteration
 
@@ -171,7 +176,7 @@ def _shared_ego_projection(state):
     return objectives.ego_projection(rot, params.trans, params.intrinsics(), data.ei, data.ej)
 
 
-_SHARED = {"cam": _shared_cam, "rotations": _shared_rotations, "world": _shared_world, "edge_similarity": _shared_edge_similarity,
+_SHARED = {"cam": _shared_cam, "depth": _shared_depth, "rotations": _shared_rotations, "world": _shared_world, "edge_similarity": _shared_edge_similarity,
            "ego_projection": _shared_ego_projection}
 
 
@@ -315,12 +320,13 @@ def optimise(
     _check_inputs(pw, num_frames, flows, static_masks, tracks, visible)
     torch.manual_seed(int(cfg.seed))
     opt_cfg, weights = cfg.optim, cfg.weights
-    history: dict = {"seconds": {}, "losses": {}}
+    history: dict = {"seconds": {}, "cpu_seconds": {}, "losses": {}}
 
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     stage1 = Stage1(pw, num_frames, cfg, flows, static_masks, device)
     params = stage1.params
     history["seconds"]["init"] = time.perf_counter() - start
+    history["cpu_seconds"]["init"] = time.process_time() - cpu_start
 
     start = time.perf_counter()
     history["losses"]["stage1"] = _run_adam(list(params.parameters()), opt_cfg.stage1_iters, opt_cfg,
@@ -335,7 +341,7 @@ def optimise(
     if terms:
         pts_targets = None
         if tracks is not None:  # the PTS targets: smoothed tracks spread to every pixel, built once
-            start = time.perf_counter()
+            start, cpu_start = time.perf_counter(), time.process_time()
             pc = cfg.pts
             with torch.no_grad():
                 trk = torch.as_tensor(np.asarray(tracks, np.float32), device=device)
@@ -344,6 +350,7 @@ def optimise(
                     params.world_points(), torch.nan_to_num(trk, -1.0), vis, pc.window, pc.extend,
                     pc.kernel, pc.lam, pc.knn)
             history["seconds"]["pts_targets"] = time.perf_counter() - start
+            history["cpu_seconds"]["pts_targets"] = time.process_time() - cpu_start
             history["pts_frames"] = int(pts_targets[1].sum())
         for p in params.parameters():
             p.requires_grad_(False)

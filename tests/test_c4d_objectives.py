@@ -43,9 +43,10 @@ def reference_ga(world, frames, pts, w, mat, trans):
     return (w * (world[frames] - (pts @ mat.transpose(1, 2) + trans[:, None])).norm(dim=-1)).sum()
 
 
-def reference_cma(cam, frames, mat, offset, target, static, max_px, px_scale):
-    """CMA written the straightforward way (autograd), channels-last: cam (T,P,3), target (e,P,2)."""
-    proj = cam[frames] @ mat.transpose(1, 2) + offset[:, None]
+def reference_cma(depth, frames, mat, offset, pixels, target, static, max_px, px_scale):
+    """CMA written the straightforward way (autograd), channels-last: depth (T,P), pixels (P,3)
+    homogeneous, target (e,P,2)."""
+    proj = depth[frames][..., None] * (pixels @ mat.transpose(1, 2)) + offset[:, None]
     z = proj[..., 2]
     err = px_scale * (proj[..., :2] / z.clamp_min(1e-6)[..., None] - target).abs()
     keep = static[..., None] & (z > 1e-6)[..., None] & (err < max_px).detach()
@@ -59,8 +60,10 @@ def test_hand_written_gradients_equal_autograd_of_the_plain_formulas():
     mat, trans = torch.randn(n, 3, 3, generator=g, dtype=torch.float64), torch.randn(n, 3, generator=g, dtype=torch.float64)
     frames = torch.randint(0, t, (n,), generator=g)
     pts, w = torch.randn(n, p, 3, generator=g, dtype=torch.float64), torch.rand(n, p, generator=g, dtype=torch.float64)
-    cam = torch.randn(t, p, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
-    cam[0, :5, 2] = -1.0  # behind the camera: ignored
+    depth = torch.rand(t, p, generator=g, dtype=torch.float64) + 2.5
+    depth[0, :5] = -1.0  # behind the camera: ignored
+    pixels = torch.cat([torch.rand(p, 2, generator=g, dtype=torch.float64) * 0.6 - 0.3,
+                        torch.ones(p, 1, dtype=torch.float64)], 1)  # (P,3) homogeneous
     proj = torch.eye(3, dtype=torch.float64) * 40 + torch.randn(n, 3, 3, generator=g, dtype=torch.float64)
     proj[:, 2] = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     offset = torch.randn(n, 3, generator=g, dtype=torch.float64)
@@ -69,8 +72,8 @@ def test_hand_written_gradients_equal_autograd_of_the_plain_formulas():
     cases = [
         (lambda a, b, c: obj.global_alignment_sum(channels_first(a), frames, channels_first(pts), w, b, c),
          lambda a, b, c: reference_ga(a, frames, pts, w, b, c), (world, mat, trans)),
-        (lambda a, b, c: obj.camera_motion_sum(channels_first(a), frames, b, c, channels_first(target), static, 30.0, 2.0),
-         lambda a, b, c: reference_cma(a, frames, b, c, target, static, 30.0, 2.0), (cam, proj, offset)),
+        (lambda a, b, c: obj.camera_motion_sum(a, frames, b, c, pixels.T, channels_first(target), static, 30.0, 2.0),
+         lambda a, b, c: reference_cma(a, frames, b, c, pixels, target, static, 30.0, 2.0), (depth, proj, offset)),
     ]
     for fused, plain, inputs in cases:
         values, grads = [], []
@@ -87,9 +90,7 @@ def test_hand_written_gradients_equal_autograd_of_the_plain_formulas():
 
 def test_camera_motion_alignment_zero_for_ego_flow_and_l1_otherwise():
     h, w = 4, 5
-    focal = torch.tensor([10.0, 10.0], dtype=torch.float64)
-    principal = torch.tensor([2.0, 1.5], dtype=torch.float64)
-    cam = channels_first((pixel_rays(h, w, focal, principal) * 3.0).reshape(2, -1, 3))  # depth 3
+    depth = torch.full((2, h * w), 3.0, dtype=torch.float64)
     poses = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
     poses[1, 0, 3] = 0.3  # camera 1 moved 0.3 to the right: points move 10*0.3/3 = 1 px left
     k = torch.zeros(2, 3, 3, dtype=torch.float64)
@@ -97,12 +98,13 @@ def test_camera_motion_alignment_zero_for_ego_flow_and_l1_otherwise():
     k[:, 0, 2], k[:, 1, 2], k[:, 2, 2] = 2.0, 1.5, 1.0
     v, u = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     pixels = torch.stack([u, v]).reshape(1, 2, -1).double()  # (1,2,P)
+    grid = torch.cat([pixels[0], torch.ones(1, h * w, dtype=torch.float64)])  # (3,P) [u, v, 1]
     ei, ej = torch.tensor([0]), torch.tensor([1])
     mat, offset = obj.ego_projection(poses[:, :3, :3], poses[:, :3, 3], k, ei, ej)
     flow = torch.zeros(1, 2, h * w, dtype=torch.float64)
     flow[:, 0] = -1.0
     static = torch.ones(1, h * w, dtype=torch.bool)
-    cma = lambda max_px, px_scale=1.0: obj.camera_motion_sum(cam, ei, mat, offset, pixels + flow, static, max_px, px_scale)  # noqa: E731
+    cma = lambda max_px, px_scale=1.0: obj.camera_motion_sum(depth, ei, mat, offset, grid, pixels + flow, static, max_px, px_scale)  # noqa: E731
     assert cma(50.0) < 1e-9
     flow[:, 1] += 0.5  # every static pixel off by 0.5 px in y
     static[0, :4] = False
@@ -112,6 +114,13 @@ def test_camera_motion_alignment_zero_for_ego_flow_and_l1_otherwise():
     # in reference pixels: this 5-px-wide image seen as a 20-px one, errors (and max_px) 4x larger
     assert cma(50.0, 4.0).item() == pytest.approx(4 * 0.5 * (h * w - 4))
     assert cma(1.9, 4.0).item() == pytest.approx(0.0, abs=1e-9)
+    # the map itself, with frames of different intrinsics: H = K_j R_j^T R_i K_i^-1
+    k[1, 0, 0], k[1, 1, 1], k[1, 0, 2] = 14.0, 14.0, 2.5
+    rot = torch.stack([rot_z(0.2), rot_z(-0.1)])
+    mat, offset = obj.ego_projection(rot, poses[:, :3, 3], k, torch.tensor([0, 1]), torch.tensor([1, 0]))
+    torch.testing.assert_close(mat[0], k[1] @ rot[1].T @ rot[0] @ torch.linalg.inv(k[0]))
+    torch.testing.assert_close(mat[1], k[0] @ rot[0].T @ rot[1] @ torch.linalg.inv(k[1]))
+    torch.testing.assert_close(offset[1], k[0] @ rot[0].T @ (poses[1, :3, 3] - poses[0, :3, 3]))
 
 
 def test_objectives_registry_names_every_term_once():
