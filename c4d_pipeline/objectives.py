@@ -14,9 +14,9 @@ Shapes: T frames, E edges (directed pairs), P = H*W pixels, N tracks.
   in non-overlapping windows of 20 frames extended by 5 frames on each side.
 GA and CMA return *sums* over their edges so that callers may evaluate edges in chunks and
 normalise once (see `c4d_pipeline.optimize`); GA takes channels-first (n,3,P) point layouts, CMA
-the (T,P) depth and the pixel grid, and both carry hand-written gradients (the per-pixel work is a few fused passes instead of an autograd
-graph of (n,P,3) temporaries). `OBJECTIVES` (bottom) registers every term with its weight key, stage
-and inputs; the stage loops iterate over it.
+the (T,P) depth and the pixel grid, and both carry hand-written gradients (the per-pixel work is a
+few fused passes instead of an autograd graph of (n,P,3) temporaries). `OBJECTIVES` (bottom)
+registers every term with its weight key, stage and inputs; the stage loops iterate over it.
 """
 
 from __future__ import annotations

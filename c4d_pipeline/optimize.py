@@ -69,7 +69,8 @@ class _Inputs:
     ei, ej (E,) the edges' frames; views: for view i and view j of every edge, (frames (E,),
     pointmaps (E,3,P) (a transposed view of the pair's (E,P,3) array: no copy), GA weights = log
     confidence (E,P)); with flow: target (E,2,P) pixel + flow i->j, static (E,P) static in frame i
-    and finite flow, num_static, pixels (3,P) the homogeneous pixel grid [u, v, 1]. `available`: the observation names the objectives may ask for.
+    and finite flow, num_static, pixels (3,P) the homogeneous pixel grid [u, v, 1]. `available`:
+    the observation names the objectives may ask for.
     """
 
     def __init__(self, pw, flows, static_masks, device):
@@ -176,7 +177,8 @@ def _shared_ego_projection(state):
     return objectives.ego_projection(rot, params.trans, params.intrinsics(), data.ei, data.ej)
 
 
-_SHARED = {"cam": _shared_cam, "depth": _shared_depth, "rotations": _shared_rotations, "world": _shared_world, "edge_similarity": _shared_edge_similarity,
+_SHARED = {"cam": _shared_cam, "depth": _shared_depth, "rotations": _shared_rotations, "world": _shared_world,
+           "edge_similarity": _shared_edge_similarity, "ego_projection": _shared_ego_projection}
            "ego_projection": _shared_ego_projection}
 
 
