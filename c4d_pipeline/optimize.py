@@ -179,7 +179,6 @@ def _shared_ego_projection(state):
 
 _SHARED = {"cam": _shared_cam, "depth": _shared_depth, "rotations": _shared_rotations, "world": _shared_world,
            "edge_similarity": _shared_edge_similarity, "ego_projection": _shared_ego_projection}
-           "ego_projection": _shared_ego_projection}
 
 
 class StageState:
