@@ -269,7 +269,9 @@ class Stage1:
         self.params = SceneParams(init.depth, init.cam_to_world, init.focal, init.edge_scale,
                                   init.edge_rotation, init.edge_translation,
                                   shared_focal=opt_cfg.shared_focal).to(device)
-        self.data = _Inputs(pw, flows if cfg.weights.cma > 0 else None, static_masks, device)
+        wanted = {name for term in active_objectives(1, cfg.weights, {"pointmaps", "flow", "tracks"})
+                  for name in term.inputs}  # flow is held on the device only if a term reads it
+        self.data = _Inputs(pw, flows if "flow" in wanted else None, static_masks, device)
         px_scale = cfg.cma.reference_size / max(h, w) if cfg.cma.reference_size > 0 else 1.0
         self.state = StageState(self.params, self.data, float(cfg.cma.max_px), px_scale)
         self.weights, self.edge_chunk = cfg.weights, int(opt_cfg.edge_chunk)
