@@ -168,9 +168,12 @@ _interrupted = threading.Event()
 
 @contextmanager
 def _interrupt_flag() -> Iterator[None]:
-    """While inside: SIGINT sets `_interrupted` and raises KeyboardInterrupt (main thread only)."""
+    """While inside: SIGINT sets `_interrupted` and raises KeyboardInterrupt (main thread only).
+
+    A process that ignores SIGINT (a job a shell started in the background) keeps ignoring it."""
     _interrupted.clear()
-    if threading.current_thread() is not threading.main_thread():
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):
         yield
         return
 

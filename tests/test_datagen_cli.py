@@ -200,10 +200,17 @@ def test_ctrl_c_dropped_by_a_finaliser_still_stops_the_run():
         def __del__(self):
             os.kill(os.getpid(), signal.SIGINT)  # the handler runs here, inside the finaliser
 
-    with datagen_cli._interrupt_flag():
-        datagen_cli._check_interrupt()  # nothing pending yet
-        SignalsWhenCollected()  # collected at once: the KeyboardInterrupt is dropped
-        gc.collect()
-        with pytest.raises(KeyboardInterrupt):
-            datagen_cli._check_interrupt()
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal
+    try:
+        with datagen_cli._interrupt_flag():
+            datagen_cli._check_interrupt()  # nothing pending yet
+            SignalsWhenCollected()  # collected at once: the KeyboardInterrupt is dropped
+            gc.collect()
+            with pytest.raises(KeyboardInterrupt):
+                datagen_cli._check_interrupt()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job keeps ignoring Ctrl-C
+        with datagen_cli._interrupt_flag():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -347,11 +347,19 @@ def alive(pid: int) -> bool:
     return state != "Z"
 
 
+def _interruptible() -> None:
+    """In the child before exec: Ctrl-C's default action. A test run started in the background
+    (CI) ignores SIGINT, and an ignored signal stays ignored across exec: the child would never
+    see the Ctrl-C it is sent."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def datagen_process(out: Path, workers: int, num_scenes: int = 3) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "c4d", "datagen", "--num-scenes", str(num_scenes),
                              "--scenes-per-shard", "1", "--out", str(out), "--workers",
                              str(workers), *TINY_DATAGEN], env=ENV, cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_interruptible)
 
 
 def test_datagen_killed_then_rerun_gives_sha_identical_shards(tmp_path):
