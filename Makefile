@@ -1,7 +1,8 @@
 # Set-up and everyday commands. `make demo` and `make test` do everything on a fresh machine.
 PYTHON ?= python3
 VENV ?= .venv
-# The CPU build by default; on a CUDA machine e.g. `make install TORCH="torch==2.13.0 --index-url ..."`.
+# Pinned; the build is the one your pip index serves (PyPI's Linux wheel brings CUDA). The CPU-only
+# build: `make install TORCH="torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu"`.
 TORCH ?= torch==2.13.0
 BIN := $(VENV)/bin
 PYTEST_ARGS ?=
