@@ -7,7 +7,7 @@ TORCH ?= torch==2.13.0
 BIN := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: install demo test clean
+.PHONY: install demo test readme-pictures clean
 
 install: $(VENV)/.installed
 
@@ -22,6 +22,11 @@ demo: install
 
 test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# The README's pictures from the current demo (all of its first reconstructed val scene).
+readme-pictures: install
+	$(BIN)/c4d demo --out demo_out
+	cp demo_out/pictures/readme/*.png docs/images/
 
 clean:
 	rm -rf $(VENV) build *.egg-info
