@@ -188,6 +188,7 @@ def test_resolution_forms():
     assert parse_resolution("384X512") == [384, 512]
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the dropped one
 def test_ctrl_c_dropped_by_a_finaliser_still_stops_the_run():
     """A KeyboardInterrupt raised inside `__del__` is printed and dropped by Python; the run must
     still stop at its next check (it once went on to write every shard and exit 0)."""
