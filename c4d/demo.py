@@ -192,7 +192,7 @@ def readme_pictures(pictures: Path) -> Path:
     contact sheet, three frames of the track overlay (first, middle, and the frame with the most
     points predicted moving), the camera trajectory and the scene.ply rendering."""
     from c4d_core.draw import side_by_side
-    from c4d_core.video import read_video_frames, write_image
+    from c4d_core.video import read_video, write_image
 
     out = pictures / "readme"
     out.mkdir(parents=True, exist_ok=True)
@@ -200,7 +200,7 @@ def readme_pictures(pictures: Path) -> Path:
     shutil.copyfile(sheet, out / "dataset_sheet.png")
     shutil.copyfile(pictures / "reconstruction" / "trajectory.png", out / "trajectory.png")
     shutil.copyfile(pictures / "reconstruction" / "ply.png", out / "scene_ply.png")
-    overlay = read_video_frames(pictures / "tracks" / "overlay.mp4")
+    overlay = read_video(pictures / "tracks" / "overlay.mp4")
     with np.load(pictures / "tracks" / "tracks.npz") as tracks:
         moving = ((tracks["moving"] > 0.5) & tracks["visible"]).sum(axis=1)  # (T,)
     frames = sorted({0, len(overlay) // 2, int(moving.argmax())})

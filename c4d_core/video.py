@@ -147,21 +147,6 @@ def _check_written(path: Path, num_frames: int, height: int, width: int) -> None
                     "instead")
 
 
-def read_video_frames(path: str | os.PathLike) -> np.ndarray:
-    """Decode every frame of a video file with OpenCV: RGB uint8 (T,H,W,3)."""
-    capture = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, frame = capture.read()
-        if not ok:
-            break
-        frames.append(frame[..., ::-1])
-    capture.release()
-    if not frames:
-        raise OSError(f"no frames could be decoded from {path}")
-    return np.ascontiguousarray(np.stack(frames))
-
-
 def _natural_key(path: Path):
     """Sort frame_2.png before frame_10.png."""
     return [int(s) if s.isdigit() else s for s in re.split(r"(\d+)", path.name)]

@@ -126,7 +126,7 @@ def test_write_video_round_trip(tmp_path, suffix):
     frames[:, :, :20, 0] = 255
     path = video.write_video(tmp_path / f"clip{suffix}", frames, fps=5)
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"clip{suffix}"]
-    decoded = video.read_video_frames(path)
+    decoded = video.read_video(path)
     assert decoded.shape[0] == 5 and decoded.shape[1:3] in ((31, 40), (32, 40))
     np.testing.assert_allclose(
         decoded[:, :31].astype(float).mean(axis=(1, 2, 3)), frames.astype(float).mean(axis=(1, 2, 3)),

@@ -13,7 +13,7 @@ from PIL import Image
 from c4d.cli import main
 from c4d.inspect import dataset_check, dataset_report
 from c4d_core.config import load_config
-from c4d_core.video import read_video_frames
+from c4d_core.video import read_video
 from tests.synthetic_scenes import make_box_scene
 from datagen import shards
 
@@ -62,7 +62,7 @@ def test_report_counts_plots_and_sample_pictures(shard_dir, tmp_path):
     panel_h, panel_w = 4 * H, 4 * W  # 48-pixel scenes are shown 4x larger
     keys = 26  # the colour-key strip under the panels (tracks, depth bar, flow wheel)
     assert sheet.shape == (4 * panel_h + 3 * 2 + keys, 4 * panel_w + 3 * 2, 3) and _not_blank(sheet)
-    video = read_video_frames(out / "scenes/train-00000000/video.webm")
+    video = read_video(out / "scenes/train-00000000/video.webm")
     assert video.shape == (T, panel_h + keys, 4 * panel_w + 3 * 2, 3) and _not_blank(video[0])
     page = (out / "index.html").read_text()
     assert "distributions.png" in page and "scenes/train-00000001/video.webm" in page

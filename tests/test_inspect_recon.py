@@ -112,11 +112,11 @@ def test_report_writes_videos_plots_and_a_page(tmp_path, recon_dir, box_scene):
     for name in ("overview.webm", "depth.webm", "masks.webm", "flythrough.webm", "trajectory.png",
                  "flythrough.png", "ply.png", "index.html"):
         assert (out / name).is_file(), name
-    from c4d_core.video import read_video_frames
+    from c4d_core.video import read_video
 
-    overview = read_video_frames(out / "overview.webm")
+    overview = read_video(out / "overview.webm")
     assert overview.shape[0] == 8 and overview.shape[1] >= 192 and _not_blank(overview[0])
-    flythrough = read_video_frames(out / "flythrough.webm")
+    flythrough = read_video(out / "flythrough.webm")
     assert len(flythrough) == 20 and _not_blank(flythrough[0])
     assert not np.array_equal(flythrough[0], flythrough[5]), "the virtual camera moves"
     ply = cv2.imread(str(out / "ply.png"))
