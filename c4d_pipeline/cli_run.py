@@ -71,11 +71,10 @@ def load_run_config(args: argparse.Namespace):
 
 
 def _check_file(path: str, what: str, flag: str) -> None:
-    if path and Path(path).is_dir():
-        raise UserError(f"{what} {path!r} is a folder, not a file; give the checkpoint file inside "
-                        f"it with {flag}")
-    if path and not Path(path).is_file():
-        raise UserError(f"{what} {path!r} does not exist; give the path of a local file with {flag}")
+    if path:
+        from dynpt.torch_files import require_file  # torch: only once a run starts
+
+        require_file(Path(path), what, f"give the path of a local file with {flag}")
 
 
 class _FlowWithProgress:
