@@ -509,8 +509,6 @@ class Trainer:
                 self.save(summary)
         if self.writer is not None:
             self.writer.flush()
-        if self.world_size > 1:  # rank 0 may still validate or save: no rank tears the group down
-            dist.barrier()       # under it (a gloo process group destroyed early aborts the other)
         read, bad = (sum(c[i] for c in self.data_counts.values()) for i in (0, 1))
         if bad:
             log.warning("warning: skipped %d bad training samples of %d read (see the warnings "
