@@ -18,6 +18,7 @@ files a killed checkpoint write left in `checkpoints/`.
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import json
 import logging
@@ -509,6 +510,8 @@ class Trainer:
                 self.save(summary)
         if self.writer is not None:
             self.writer.flush()
+        if self.world_size > 1:  # rank 0 may still validate or write the last checkpoint: no
+            dist.barrier()       # rank leaves (and tears its half of the group down) before it
         read, bad = (sum(c[i] for c in self.data_counts.values()) for i in (0, 1))
         if bad:
             log.warning("warning: skipped %d bad training samples of %d read (see the warnings "
@@ -519,6 +522,11 @@ class Trainer:
         if self.writer is not None:
             self.writer.close()
         if self.world_size > 1 and dist.is_initialized():
+            # DDP's reducer holds the gloo group and its last work items: release them while the
+            # interpreter is whole, or the group's threads are torn down at interpreter exit
+            # (gloo aborts there: 'terminate called without an active exception')
+            self.ddp = self.model
+            gc.collect()
             dist.destroy_process_group()
 
 

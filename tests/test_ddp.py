@@ -14,6 +14,8 @@ import os
 import socket
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -47,10 +49,27 @@ def _torchrun(launcher: list[str], args: list[str], dump: Path) -> subprocess.Po
     return _start([*TORCHRUN, *launcher, "-m", "dynpt.cli_train", "--config", "tiny-cpu", *args], dump)
 
 
-def _wait(*processes: subprocess.Popen) -> None:
+def _wait(*processes: subprocess.Popen, timeout: float = 300, grace: float = 30) -> None:
+    """All launches exit 0; once one fails the others get `grace` seconds (a torchrun agent whose
+    peer died waits in its exit barrier for minutes), then every launch's output is shown."""
+    outputs: list[list[str]] = [[] for _ in processes]
+    readers = [threading.Thread(target=lambda p=p, o=o: o.append(p.stdout.read()), daemon=True)
+               for p, o in zip(processes, outputs)]
+    for reader in readers:
+        reader.start()
+    deadline = time.monotonic() + timeout
+    while any(p.poll() is None for p in processes) and time.monotonic() < deadline:
+        if any(p.returncode not in (None, 0) for p in processes):
+            deadline = min(deadline, time.monotonic() + grace)
+        time.sleep(0.2)
     for p in processes:
-        out, _ = p.communicate(timeout=300)
-        assert p.returncode == 0, out[-3000:]
+        if p.poll() is None:
+            p.kill()
+    for reader in readers:
+        reader.join()
+    report = [f"launch {i}: exit {p.wait()}\n{''.join(o)[-3000:]}"
+              for i, (p, o) in enumerate(zip(processes, outputs))]
+    assert all(p.returncode == 0 for p in processes), "\n\n".join(report)
 
 
 def _free_port() -> int:
