@@ -307,6 +307,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "optim.lr_min": number(0.0), "optim.schedule": text("constant", "linear", "cosine"),
         "optim.betas": numbers(2, low=0.0, high=0.999999), "optim.shared_focal": flag(),
         "optim.world_scale": number(0.0), "optim.edge_chunk": POSITIVE,
+        "optim.coarse_factor": COUNT, "optim.coarse_iters": POSITIVE,
         "weights.*": number(0.0),  # every C4D objective's weight (c4d_pipeline.objectives)
         "cma.reference_size": POSITIVE, "cma.max_px": number(above=0),
         "pts.window": COUNT, "pts.extend": POSITIVE, "pts.kernel": COUNT, "pts.lam": number(0.0),
@@ -385,8 +386,15 @@ def _dynpt(cfg: Mapping) -> list[str | None]:
 
 
 def _c4d(cfg: Mapping) -> list[str | None]:
+    coarse, iters = _get(cfg, "optim.coarse_iters"), _get(cfg, "optim.stage1_iters")
     return [None if _get(cfg, "optim.lr_min") <= _get(cfg, "optim.lr") else
-            f"`optim.lr_min` = {_get(cfg, 'optim.lr_min')} must be <= `optim.lr` = {_get(cfg, 'optim.lr')}"]
+            f"`optim.lr_min` = {_get(cfg, 'optim.lr_min')} must be <= `optim.lr` = {_get(cfg, 'optim.lr')}",
+            None if coarse == 0 or coarse < iters else
+            f"`optim.coarse_iters` = {coarse} must be < `optim.stage1_iters` = {iters} (stage 1 ends at "
+            "full size)",
+            None if coarse == 0 or _get(cfg, "optim.coarse_factor") > 1 else
+            f"`optim.coarse_iters` = {coarse} needs `optim.coarse_factor` >= 2 (1 is full size); "
+            "set both, or coarse_iters=0"]
 
 
 def _datagen(cfg: Mapping) -> list[str | None]:

@@ -14,7 +14,7 @@ delta < 1.25 (per-sequence scale-and-shift alignment). Results are cached per (s
 OUT/runs/ so an interrupted run resumes; OUT/ablation.json and OUT/ablation.md hold the tables.
 
     python -m c4d_pipeline.ablation [--dynamic DIR] [--static DIR] --out OUT [--size 64]
-        [--frames N] [--preset default] [--flow gt] [--bias on,off]
+        [--stride S] [--frames N] [--preset default] [--flow gt] [--bias on,off]
         [--variants "GA only,w/o CMA,w/o CTS,C4D"] [key=value ...]
 """
 
@@ -75,10 +75,12 @@ VARIANTS, RUNS, STAGE1_OF = read_variants()
 METRICS = ("ate", "rpe_trans", "rpe_rot", "abs_rel", "rmse", "delta_1_25")
 
 
-def resize_scene(scene: Scene, size: int, frames: int | None = None) -> Scene:
-    """The first `frames` frames (all if None) of the scene at `size` pixels on its longer side
-    (area-averaged RGB, nearest-neighbour labels and depth)."""
-    keep = slice(0, frames)
+def resize_scene(scene: Scene, size: int, frames: int | None = None, stride: int = 1) -> Scene:
+    """The first `frames` (all if None) of every `stride`-th frame of the scene, at `size` pixels on
+    its longer side (area-averaged RGB, nearest-neighbour labels and depth). A track queried on a
+    frame left out is queried again on its first visible kept frame."""
+    keep = slice(0, None if frames is None else frames * stride, stride)
+    kept = np.arange(scene.num_frames)[keep]  # (T',) the kept frames' indices in the scene
     h, w = scene.image_size
     hw = (round(h * size / max(h, w)), round(w * size / max(h, w)))
     sx, sy = hw[1] / w, hw[0] / h
@@ -86,8 +88,9 @@ def resize_scene(scene: Scene, size: int, frames: int | None = None) -> Scene:
     tracks = scene.tracks[:, keep].copy()
     tracks[..., 0] = rescale_pixels(tracks[..., 0], sx)
     tracks[..., 1] = rescale_pixels(tracks[..., 1], sy)
-    occluded, query_frame = scene.occluded[:, keep].copy(), scene.query_frame.copy()
-    outside = query_frame >= rgb.shape[0]  # queried after the cut: re-anchor at first visible frame
+    occluded = scene.occluded[:, keep].copy()
+    query_frame = np.minimum(np.searchsorted(kept, scene.query_frame), len(kept) - 1)  # (N,) kept index
+    outside = kept[query_frame] != scene.query_frame  # queried on a frame left out: re-anchor
     query_frame[outside] = np.argmax(~occluded[outside], axis=1)
     usable = (~occluded).any(axis=1)
     return Scene(
@@ -172,7 +175,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", default=None,
                         help="comma-separated scene indices to run (e.g. to split work over processes)")
     parser.add_argument("--size", type=int, default=64, help="longer image side for the optimisation")
-    parser.add_argument("--frames", type=int, default=None, help="use the first N frames of each scene")
+    parser.add_argument("--stride", type=int, default=1, help="use every S-th frame of each scene")
+    parser.add_argument("--frames", type=int, default=None,
+                        help="use the first N (strided) frames of each scene")
     parser.add_argument("--preset", default="default", help="c4d config preset or YAML")
     parser.add_argument("--flow", default="gt", help="flow estimator: gt | dis[:PRESET] | raft:PATH")
     parser.add_argument("--masks", default="c4d", choices=("c4d", "gt"), help="motion masks used by CMA")
@@ -188,6 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     from datagen import read_scenes
 
     load_config("c4d", args.preset, overrides=args.overrides)  # fail early on a bad override
+    if args.stride < 1 or (args.frames is not None and args.frames < 2):
+        raise UserError(f"--stride must be >= 1 and --frames >= 2; got --stride {args.stride} "
+                        f"--frames {args.frames}")
     if not (args.dynamic or args.static):
         raise UserError("give --dynamic and/or --static scene shards (c4d datagen output)")
     biases = [b.strip() for b in args.bias.split(",")]
@@ -207,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
                 break
             if args.only is not None and n not in {int(i) for i in args.only.split(",")}:
                 continue
-            scene = resize_scene(scene, args.size, args.frames)
+            scene = resize_scene(scene, args.size, args.frames, args.stride)
             for bias in biases:
                 key = f"{group}-{n:03d}-bias-{bias}"
                 path = out / "runs" / f"{key}.json"

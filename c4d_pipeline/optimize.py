@@ -2,10 +2,13 @@
 
 Stage 1: GA + w_cma CMA + w_cts CTS over depth, poses, intrinsics and the per-edge similarities.
 Stage 2: poses, intrinsics and edge similarities fixed; w_pts PTS over depth only.
+Coarse-to-fine (`optim.coarse_factor` > 1, `optim.coarse_iters` > 0): the first coarse_iters of
+stage 1's iterations run on pooled observations, the rest at full size (`coarse_to_fine`).
 Units, so the paper's weights keep their meaning: the world is scaled as DUSt3R's (mean distance of
 the points from their camera `optim.world_scale` = 0.5: pair pointmaps of unit mean distance, edge
 scales of geometric mean 0.5), and CMA measures flow in pixels of a `cma.reference_size` = 512 image.
-Both: Adam, lr 0.01 (decayed to `lr_min` by `schedule`), `stage1_iters` / `stage2_iters` steps.
+Both: Adam, lr 0.01 (decayed to `lr_min` by `schedule`), `stage1_iters` / `stage2_iters` steps
+(stage 1's one schedule across its coarse and full-size iterations).
 
 The terms are `objectives.OBJECTIVES` (name, weight key, stage, inputs); a stage iterates over the
 registered terms of its stage whose weight is > 0 and whose inputs were given, so a new loss is one
@@ -30,7 +33,7 @@ import torch
 from tqdm import tqdm
 
 from c4d_core.errors import UserError
-from c4d_pipeline import objectives
+from c4d_pipeline import coarse_to_fine, objectives
 from c4d_pipeline.alignment import Initialisation, initialise
 from c4d_pipeline.pointmaps import PairwisePointmaps
 from c4d_pipeline.scene_params import SceneParams, pixel_rays
@@ -258,14 +261,16 @@ def stage_step(state: StageState, terms: list[objectives.Objective], weights, ed
 class Stage1:
     """Stage 1 of `optimise` as a callable: built from the observations and the config (same
     arguments), `step()` makes one forward/backward of GA + CMA + CTS (gradients left in
-    `params`) and returns its losses. Used by `optimise` and by timing scripts."""
+    `params`) and returns its losses. Used by `optimise` and by timing scripts. `init`: initial
+    values in the world's units (default: the spanning-tree initialisation, `rescale_world`ed)."""
 
     def __init__(self, pw: PairwisePointmaps, num_frames: int, cfg, flows=None, static_masks=None,
-                 device: str = "cpu"):
+                 device: str = "cpu", init: Initialisation | None = None):
         h, w = pw.image_size
         opt_cfg = cfg.optim
-        init = rescale_world(initialise(pw, num_frames, shared_focal=opt_cfg.shared_focal),
-                             (h, w), opt_cfg.world_scale)
+        if init is None:
+            init = rescale_world(initialise(pw, num_frames, shared_focal=opt_cfg.shared_focal),
+                                 (h, w), opt_cfg.world_scale)
         self.params = SceneParams(init.depth, init.cam_to_world, init.focal, init.edge_scale,
                                   init.edge_rotation, init.edge_translation,
                                   shared_focal=opt_cfg.shared_focal).to(device)
@@ -281,12 +286,18 @@ class Stage1:
         return stage_step(self.state, self.terms, self.weights, self.edge_chunk)
 
 
-def _run_adam(params_list, steps, cfg, step_fn, stage: str, progress: bool) -> dict:
-    """Adam with the configured schedule; returns {loss name, 'seconds', 'cpu_seconds': [per-iteration values]}."""
-    opt = torch.optim.Adam(params_list, lr=cfg.lr, betas=tuple(cfg.betas))
+def adam(params_list, cfg) -> torch.optim.Adam:
+    """The optimiser of both stages (`optim.lr`, `optim.betas`; the schedule sets lr per iteration)."""
+    return torch.optim.Adam(params_list, lr=cfg.lr, betas=tuple(cfg.betas))
+
+
+def _run_adam(opt: torch.optim.Adam, steps: range, total: int, cfg, step_fn, stage: str,
+              progress: bool) -> dict:
+    """Iterations `steps` of a schedule of `total`; returns {loss name, 'seconds',
+    'cpu_seconds': [per-iteration values]}."""
     curves: dict[str, list[float]] = {}
-    for it in tqdm(range(steps), desc=stage, disable=not progress, leave=False):
-        lr = learning_rate(it, steps, cfg.lr, cfg.lr_min, cfg.schedule)
+    for it in tqdm(steps, desc=stage, disable=not progress, leave=False):
+        lr = learning_rate(it, total, cfg.lr, cfg.lr_min, cfg.schedule)
         for group in opt.param_groups:
             group["lr"] = lr
         opt.zero_grad(set_to_none=True)
@@ -324,15 +335,39 @@ def optimise(
     torch.manual_seed(int(cfg.seed))
     opt_cfg, weights = cfg.optim, cfg.weights
     history: dict = {"seconds": {}, "cpu_seconds": {}, "losses": {}}
+    total = int(opt_cfg.stage1_iters)
+    factor, coarse_iters = int(opt_cfg.coarse_factor), int(opt_cfg.coarse_iters)
+    coarse_iters = coarse_iters if factor > 1 else 0
+
+    init = None
+    if coarse_iters:  # the first iterations of stage 1 on pooled observations (coarse_to_fine)
+        coarse_to_fine.check_factor(pw.image_size, factor)
+        start, cpu_start = time.perf_counter(), time.process_time()
+        pooled, pooled_flows, pooled_static = coarse_to_fine.pooled_inputs(pw, factor, flows, static_masks)
+        coarse = Stage1(pooled, num_frames, cfg, pooled_flows, pooled_static, device)
+        del pooled, pooled_flows, pooled_static
+        history["seconds"]["init_coarse"] = time.perf_counter() - start
+        history["cpu_seconds"]["init_coarse"] = time.process_time() - cpu_start
+        start = time.perf_counter()
+        coarse_adam = adam(list(coarse.params.parameters()), opt_cfg)
+        history["losses"]["stage1_coarse"] = _run_adam(
+            coarse_adam, range(coarse_iters), total, opt_cfg, coarse.step, f"stage 1 at 1/{factor} size",
+            progress)
+        history["seconds"]["stage1_coarse"] = time.perf_counter() - start
+        init = coarse_to_fine.lift(coarse.params, pw, num_frames, factor)
 
     start, cpu_start = time.perf_counter(), time.process_time()
-    stage1 = Stage1(pw, num_frames, cfg, flows, static_masks, device)
+    stage1 = Stage1(pw, num_frames, cfg, flows, static_masks, device, init=init)
     params = stage1.params
     history["seconds"]["init"] = time.perf_counter() - start
     history["cpu_seconds"]["init"] = time.process_time() - cpu_start
 
+    stage1_adam = adam(list(params.parameters()), opt_cfg)
+    if coarse_iters:
+        coarse_to_fine.lift_adam_state(coarse_adam, coarse.params, stage1_adam, params, factor)
+        del coarse, coarse_adam
     start = time.perf_counter()
-    history["losses"]["stage1"] = _run_adam(list(params.parameters()), opt_cfg.stage1_iters, opt_cfg,
+    history["losses"]["stage1"] = _run_adam(stage1_adam, range(coarse_iters, total), total, opt_cfg,
                                             stage1.step, "stage 1 (GA+CMA+CTS)", progress)
     history["seconds"]["stage1"] = time.perf_counter() - start
     depth_stage1 = params.depth().detach().cpu().numpy().astype(np.float32)
@@ -360,7 +395,8 @@ def optimise(
         params.log_depth.requires_grad_(True)
         state = StageState(params, stage1.data, pts_targets=pts_targets)
         start = time.perf_counter()
-        history["losses"]["stage2"] = _run_adam([params.log_depth], opt_cfg.stage2_iters, opt_cfg,
+        history["losses"]["stage2"] = _run_adam(adam([params.log_depth], opt_cfg),
+                                                range(opt_cfg.stage2_iters), opt_cfg.stage2_iters, opt_cfg,
                                                 lambda: stage_step(state, terms, weights, 0),
                                                 "stage 2 (PTS)", progress)
         history["seconds"]["stage2"] = time.perf_counter() - start

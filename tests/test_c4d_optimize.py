@@ -62,7 +62,8 @@ def test_global_alignment_converges_from_perturbed_poses(case):
     assert [t.name for t in terms] == ["ga"]
     step = lambda: opt.stage_step(state, terms, cfg.weights, 0)  # noqa: E731
     before = pose_metrics(params.cam_to_world().detach().numpy(), scene.cam_to_world)["ate"]
-    curves = opt._run_adam(list(params.parameters()), 150, cfg.optim, step, "test", False)
+    curves = opt._run_adam(opt.adam(list(params.parameters()), cfg.optim), range(150), 150, cfg.optim, step,
+                           "test", False)
     after = pose_metrics(params.cam_to_world().detach().numpy(), scene.cam_to_world)["ate"]
     assert curves["ga"][-1] < 0.2 * curves["ga"][0]
     assert after < 0.3 * before
@@ -145,6 +146,25 @@ def test_ablation_runs_every_variant_on_one_scene():
     for variant in VARIANTS:
         assert np.isfinite(out[variant]["ate"]) and 0 < out[variant]["delta_1_25"] <= 1
     assert 0 <= out["mask_iou"] <= 1
+
+
+def test_the_ablation_takes_every_stride_th_frame_and_requeries_tracks_on_kept_frames():
+    from c4d_pipeline.ablation import resize_scene
+
+    scene = make_box_scene(num_frames=9, height=24, width=32, num_tracks=48, seed=2)
+    scene.query_frame[:4] = [0, 3, 4, 8]
+    out = resize_scene(scene, 32, frames=3, stride=3)  # frames 0, 3, 6 at the same size
+    assert out.num_frames == 3 and out.image_size == (24, 32)
+    np.testing.assert_array_equal(out.rgb, scene.rgb[[0, 3, 6]])
+    np.testing.assert_array_equal(out.cam_to_world, scene.cam_to_world[[0, 3, 6]])
+    usable = (~scene.occluded[:, [0, 3, 6]]).any(axis=1)
+    np.testing.assert_allclose(out.tracks, scene.tracks[usable][:, [0, 3, 6]], atol=1e-6)
+    first_visible = np.argmax(~out.occluded, axis=1)
+    expected = {0: 0, 3: 1}  # kept frames map to their index; 4 and 8 are left out: first visible
+    for i in np.flatnonzero(usable[:4]):
+        n = int(np.flatnonzero(usable)[:i + 1].size - 1)
+        q = int(scene.query_frame[i])
+        assert out.query_frame[n] == expected.get(q, first_visible[n]), (q, out.query_frame[n])
 
 
 def test_the_ablation_table_is_read_from_its_yaml_in_order_and_checked(tmp_path):
