@@ -384,12 +384,14 @@ def optimise(
             with torch.no_grad():
                 trk = torch.as_tensor(np.asarray(tracks, np.float32), device=device)
                 vis = torch.as_tensor(np.asarray(visible, bool), device=device) & torch.isfinite(trk).all(-1)
-                pts_targets = objectives.pts_targets(
+                targets, has_target = objectives.pts_targets(
                     params.world_points(), torch.nan_to_num(trk, -1.0), vis, pc.window, pc.extend,
                     pc.kernel, pc.lam, pc.knn)
+                pts_targets = objectives.fixed_camera_pts(params, targets, has_target)
+                del targets
             history["seconds"]["pts_targets"] = time.perf_counter() - start
             history["cpu_seconds"]["pts_targets"] = time.process_time() - cpu_start
-            history["pts_frames"] = int(pts_targets[1].sum())
+            history["pts_frames"] = int(has_target.sum())
         for p in params.parameters():
             p.requires_grad_(False)
         params.log_depth.requires_grad_(True)

@@ -191,6 +191,33 @@ def test_pts_targets_pull_a_jittered_static_plane_back():
     assert obj.point_smoothness(target, target, has).item() == 0.0
 
 
+def test_fixed_camera_pts_equals_point_smoothness_of_the_world_points_and_its_gradient():
+    """Stage 2's PTS (cameras fixed, gradient by hand) against `point_smoothness` of the world
+    pointmaps by autograd, in float64: frames 0 and 3 without targets, rotated cameras."""
+    from c4d_pipeline.scene_params import SceneParams
+
+    g = torch.Generator().manual_seed(3)
+    t, h, w = 5, 6, 7
+    pose = torch.eye(4, dtype=torch.float64).repeat(t, 1, 1)
+    pose[:, :3, :3] = quat_to_rotation(torch.randn(t, 4, generator=g, dtype=torch.float64))
+    pose[:, :3, 3] = torch.randn(t, 3, generator=g, dtype=torch.float64)
+    params = SceneParams((1 + torch.rand(t, h, w, generator=g)).double(), pose,
+                         torch.tensor([9.0, 8, 10, 9, 11], dtype=torch.float64), torch.ones(1, dtype=torch.float64),
+                         torch.eye(3, dtype=torch.float64)[None], torch.zeros(1, 3, dtype=torch.float64)).double()
+    with torch.no_grad():
+        targets = params.world_points() + 0.1 * torch.randn(t, h, w, 3, generator=g, dtype=torch.float64)
+    has = torch.tensor([False, True, True, False, True])
+    reference = obj.point_smoothness(params.world_points(), targets, has)
+    (expected,) = torch.autograd.grad(reference, params.log_depth)
+    fast = obj.fixed_camera_point_smoothness(params.log_depth, *obj.fixed_camera_pts(params, targets, has))
+    (grad,) = torch.autograd.grad(fast, params.log_depth)
+    torch.testing.assert_close(fast, reference, rtol=1e-12, atol=0)
+    torch.testing.assert_close(grad, expected, rtol=1e-10, atol=1e-15)
+    assert grad[0].abs().max() == 0 and grad[1].abs().min() > 0
+    empty = obj.fixed_camera_pts(params, targets, torch.zeros(t, dtype=torch.bool))
+    assert obj.fixed_camera_point_smoothness(params.log_depth, *empty).item() == 0.0
+
+
 def test_weighted_procrustes_recovers_similarity_and_ignores_zero_weights():
     g = torch.Generator().manual_seed(1)
     src = torch.randn(1, 50, 3, generator=g, dtype=torch.float64)
