@@ -188,7 +188,9 @@ class StageState:
     """What the objectives of one iteration see (`objectives.OBJECTIVES`): the parameters, the
     observations, the CMA settings, the PTS targets (stage 2) and `shared(name)`: the tensors of
     `_SHARED[name]` computed once per iteration and handed out as detached leaves, so that edge
-    chunks accumulate their gradients there; `backward` carries them to the parameters."""
+    chunks accumulate their gradients there (`shared_frames(name)`: a per-frame (T,...) tensor as
+    one leaf per frame, whose gradients add into one (T,...) buffer); `backward` carries them to
+    the parameters."""
 
     def __init__(self, params: SceneParams, data: _Inputs, cma_max_px: float = 50.0,
                  cma_px_scale: float = 1.0, pts_targets=None):
@@ -196,6 +198,7 @@ class StageState:
         self.cma_max_px, self.cma_px_scale = cma_max_px, cma_px_scale
         self.pts_targets = pts_targets
         self._shared: dict[str, tuple[tuple, tuple]] = {}
+        self._frames: dict[str, tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]] = {}
 
     def shared_value(self, name: str) -> tuple:
         """The tensors of `name`, attached to the parameters' graph (for building other shared ones)."""
@@ -209,14 +212,28 @@ class StageState:
         self.shared_value(name)
         return self._shared[name][1]
 
+    def shared_frames(self, name: str) -> list[torch.Tensor]:
+        """The one (T,...) tensor of `name` as T leaves of (...), one per frame, their gradients
+        views of one (T,...) buffer (read them with `objectives.gather_frames`)."""
+        if name not in self._frames:
+            (value,) = self.shared_value(name)
+            grad = torch.zeros_like(value)
+            leaves = [frame.detach().requires_grad_() for frame in value.detach()]
+            for leaf, frame_grad in zip(leaves, grad):
+                leaf.grad = frame_grad  # the backward adds in place: no (T,...) tensor per edge chunk
+            self._frames[name] = (value, grad, leaves)
+        return self._frames[name][2]
+
     def backward(self, losses: list[torch.Tensor]) -> None:
         """One backward of the accumulated leaf gradients and of `losses` to the parameters; clears."""
         pairs = [(v, leaf.grad) for values, leaves in self._shared.values()
                  for v, leaf in zip(values, leaves) if leaf.grad is not None]
+        pairs += [(value, grad) for value, grad, _ in self._frames.values()]
         tensors = [v for v, _ in pairs] + losses
         if tensors:
             torch.autograd.backward(tensors, [g for _, g in pairs] + [torch.ones_like(x) for x in losses])
         self._shared.clear()
+        self._frames.clear()
 
 
 def active_objectives(stage: int, weights, available: set[str]) -> list[objectives.Objective]:
