@@ -49,39 +49,64 @@ def _norm3(vec: torch.Tensor) -> torch.Tensor:
     return sq.sqrt_()
 
 
+def _gather(frames: tuple, index: list[int]) -> torch.Tensor:
+    """The per-frame tensors `frames[f]` (each (...)) for f in `index` (n,) stacked: (n,...) (one
+    copy, which the kernels then work in place)."""
+    return torch.stack([frames[f] for f in index])
+
+
+def _per_frame_grads(rows: torch.Tensor, index: list[int], num_frames: int) -> list:
+    """The gradients of the T per-frame inputs from the rows (n,...) of their gathered copy: row k
+    is frame index[k]'s, a repeated frame's rows summed; frames not gathered get None (no (T,...)
+    tensor is made: an edge chunk's gradient touches only its frames)."""
+    frames, inverse = torch.tensor(index).unique(return_inverse=True)  # (u,) sorted, (n,)
+    if len(frames) < len(index):  # sum the rows of each frame: row j of the sum is frames[j]'s
+        rows = rows.new_zeros((len(frames),) + rows.shape[1:]).index_add_(0, inverse.to(rows.device), rows)
+        index = frames.tolist()
+    grads: list = [None] * num_frames
+    for f, grad in zip(index, rows.unbind(0)):
+        grads[f] = grad
+    return grads
+
+
 class _GlobalAlignment(torch.autograd.Function):
     """sum_k sum_p w_kp ||X^{f_k}_p - (A_k y_kp + b_k)||, gradient written out (see
     `global_alignment_sum`); the forward computes the gradient while its temporaries are alive."""
 
     @staticmethod
-    def forward(ctx, world, mat, trans, pts, log_conf):
-        res = torch.baddbmm(world, mat, pts, alpha=-1.0).sub_(trans[..., None])  # (n,3,P) X - A y - b
+    def forward(ctx, mat, trans, pts, log_conf, index, *world):
+        # in place on the gathered copy: an out-of-place baddbmm copies its input first
+        res = _gather(world, index).baddbmm_(mat, pts, alpha=-1.0).sub_(trans[..., None])  # (n,3,P) X - A y - b
         dist = _norm3(res)  # (n,P)
         loss = torch.dot(log_conf.flatten(), dist.flatten())
-        if any(ctx.needs_input_grad[:3]):
+        if any(ctx.needs_input_grad):
             unit = res.mul_((log_conf / dist.clamp_min(1e-30))[:, None])  # (n,3,P) w (X - A y - b) / |.|
+            ctx.index, ctx.num_frames = index, len(world)
             ctx.save_for_backward(unit, torch.bmm(unit, pts.transpose(1, 2)).neg_(), unit.sum(-1).neg_())
         return loss
 
     @staticmethod
     def backward(ctx, grad):
-        grad_world, grad_mat, grad_trans = ctx.saved_tensors
-        return grad_world * grad, grad_mat * grad, grad_trans * grad, None, None
+        unit, grad_mat, grad_trans = ctx.saved_tensors
+        return (grad_mat * grad, grad_trans * grad, None, None, None,
+                *_per_frame_grads(unit.mul_(grad), ctx.index, ctx.num_frames))
 
 
-def global_alignment_sum(world: torch.Tensor, pts: torch.Tensor, log_conf: torch.Tensor, mat: torch.Tensor,
-                         trans: torch.Tensor) -> torch.Tensor:
+def global_alignment_sum(world, frames: torch.Tensor, pts: torch.Tensor, log_conf: torch.Tensor,
+                         mat: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
     """GA summed over n pointmap views: sum_k sum_p w_kp ||X^{f_k}_p - (A_k y_kp + b_k)||.
 
-    Channels-first layout: world (n,3,P) the world pointmap X^{f_k} of each view's frame f_k (the
-    caller gathers them: `gather_frames`); pts (n,3,P) the views' pointmaps y in their pair's
-    frame (any strides: a transposed (n,P,3) array is read in place); log_conf (n,P) the weights w;
+    Channels-first layout: world, the world pointmaps X: a (T,3,P) tensor or T tensors (3,P) (the
+    optimiser's one leaf per frame: the gradient then touches only the frames read, no (T,3,P)
+    tensor per call); frames (n,) the frame f_k of each view; pts (n,3,P) the views' pointmaps y
+    in their pair's frame (any strides: a transposed (n,P,3) array is read in place); log_conf
+    (n,P) the weights w;
     mat (n,3,3) A_k = sigma_e R_e and trans (n,3) b_k = t_e of the view's edge e. A pair gives two
     views (its pointmaps i and j, with the same similarity). Differentiable in world, mat and trans
     by a hand-written gradient (one pass, no autograd graph over the n*P points); divide by
     E*P for DUSt3R's GA loss.
     """
-    return _GlobalAlignment.apply(world, mat, trans, pts, log_conf)
+    return _GlobalAlignment.apply(mat, trans, pts, log_conf, frames.tolist(), *world)
 
 
 # ----------------------------------------------------------------------------- CMA
@@ -108,9 +133,9 @@ class _CameraMotion(torch.autograd.Function):
     `camera_motion_sum`)."""
 
     @staticmethod
-    def forward(ctx, depth, mat, offset, pixels, target, static, max_px, px_scale):
-        n, num_pixels = depth.shape[0], pixels.shape[1]
-        gathered = depth[:, None]  # (n,1,P)
+    def forward(ctx, mat, offset, pixels, target, static, max_px, px_scale, index, *depth):
+        n, num_pixels = len(index), pixels.shape[1]
+        gathered = _gather(depth, index)[:, None]  # (n,1,P)
         rays = torch.bmm(mat, pixels.expand(n, 3, num_pixels))  # (n,3,P) H [u, v, 1]
         proj = torch.addcmul(offset[..., None], rays, gathered)  # (n,3,P) homogeneous pixels in view j
         z = proj[:, 2]
@@ -121,7 +146,7 @@ class _CameraMotion(torch.autograd.Function):
         sign = diff.sign()
         keep = ((diff.abs_() < max_px / px_scale) & valid[:, None]).to(diff.dtype)  # (n,2,P) 1 = counted
         loss = torch.dot(diff.flatten(), keep.flatten()) * px_scale  # reference pixels
-        if any(ctx.needs_input_grad[:3]):
+        if any(ctx.needs_input_grad):
             g_proj = torch.empty_like(proj)  # (n,3,P) d loss / d proj
             g_uv = g_proj[:, :2]
             torch.mul(sign, keep, out=g_uv).mul_((px_scale * inv_z)[:, None])  # at fixed z
@@ -130,22 +155,25 @@ class _CameraMotion(torch.autograd.Function):
             g_depth = torch.addcmul(torch.addcmul(g_proj[:, 0] * rays[:, 0], g_proj[:, 1], rays[:, 1]),
                                     g_proj[:, 2], rays[:, 2])  # (n,P) g . H [u, v, 1]
             g_mat = torch.mul(g_proj, gathered, out=rays).view(3 * n, num_pixels) @ pixels.T  # (3n,3)
+            ctx.index, ctx.num_frames = index, len(depth)
             ctx.save_for_backward(g_depth, g_mat.view(n, 3, 3), g_proj.sum(-1))
         return loss
 
     @staticmethod
     def backward(ctx, grad):
         grad_depth, grad_mat, grad_offset = ctx.saved_tensors
-        return grad_depth * grad, grad_mat * grad, grad_offset * grad, None, None, None, None, None
+        return (grad_mat * grad, grad_offset * grad, None, None, None, None, None, None,
+                *_per_frame_grads(grad_depth.mul_(grad), ctx.index, ctx.num_frames))
 
 
-def camera_motion_sum(depth: torch.Tensor, mat: torch.Tensor, offset: torch.Tensor,
+def camera_motion_sum(depth, frames: torch.Tensor, mat: torch.Tensor, offset: torch.Tensor,
                       pixels: torch.Tensor, target: torch.Tensor, static: torch.Tensor,
                       max_px: float, px_scale: float = 1.0) -> torch.Tensor:
     """sum over static pixels of px_scale |F_ego^{i->j} - F^{i->j}|_1 (both channels). Divide by
     the number of static pixels (times 2) for the CMA loss.
 
-    depth (e,P) z-depth of every pixel of each edge's frame i (gathered: `gather_frames`); (mat (e,3,3),
+    depth z-depth of every pixel: a (T,P) tensor or T tensors (P,) (as GA's world); frames (e,)
+    the frame i of each edge; (mat (e,3,3),
     offset (e,3)) from `ego_projection`; pixels (3,P) the homogeneous pixel grid [u, v, 1];
     target (e,2,P) = pixel + optical flow i->j, i.e. where the flow puts each pixel of view i;
     static (e,P) bool (static in frame i). The ego-motion pixel is d H [u, v, 1] + c divided by its
@@ -155,7 +183,8 @@ def camera_motion_sum(depth: torch.Tensor, mat: torch.Tensor, offset: torch.Tens
     outliers, leaving the image) or that land behind camera j are ignored, as in MonST3R's flow
     loss. Differentiable in depth, mat and offset by a hand-written gradient.
     """
-    return _CameraMotion.apply(depth, mat, offset, pixels, target, static, float(max_px), float(px_scale))
+    return _CameraMotion.apply(mat, offset, pixels, target, static, float(max_px), float(px_scale),
+                               frames.tolist(), *depth)
 
 
 # ----------------------------------------------------------------------------- CTS
@@ -343,18 +372,10 @@ def objective(name: str, weight: str, stage: int, inputs: tuple[str, ...] = (), 
     return register
 
 
-def gather_frames(frames: list, indices: torch.Tensor) -> torch.Tensor:
-    """The per-frame tensors `frames[f]` (each (...)) of frames `indices` (n,) stacked: (n,...).
-    Per-edge terms read the per-frame shared values this way: the backward then adds into only
-    the frames gathered (a gather from one (T,...) tensor would give every edge chunk a
-    full-size (T,...) gradient to allocate and add: 212 MB per chunk at 90 frames of 512x384)."""
-    return torch.stack([frames[f] for f in indices.tolist()])
-
-
 # `state` is the loop's `c4d_pipeline.optimize.StageState`: `state.params` (SceneParams),
 # `state.data` (the observations, channels-first), `state.shared(name)` (per-iteration per-edge
 # tensors whose gradients the edge chunks accumulate), `state.shared_frames(name)` (the same for
-# per-frame tensors, one leaf per frame: read them with `gather_frames`),
+# per-frame tensors, one leaf per frame, which GA and CMA take as they are),
 # `state.shared_value(name)` (either, attached to the parameters' graph), `state.cma_max_px`,
 # `state.cma_px_scale` and `state.pts_targets` (stage 2: `fixed_camera_pts`'s constants).
 
@@ -364,8 +385,7 @@ def _ga_term(state, edges: slice) -> torch.Tensor:
     world = state.shared_frames("world")  # T x (3,P)
     mat, trans = state.shared("edge_similarity")
     data = state.data
-    total = sum(global_alignment_sum(gather_frames(world, frames[edges]), pts[edges], log_conf[edges],
-                                     mat[edges], trans[edges])
+    total = sum(global_alignment_sum(world, frames[edges], pts[edges], log_conf[edges], mat[edges], trans[edges])
                 for frames, pts, log_conf in data.views)  # views i and j of every edge
     return total / (data.num_edges * data.num_pixels)
 
@@ -375,8 +395,7 @@ def _cma_term(state, edges: slice) -> torch.Tensor:
     depth = state.shared_frames("depth")  # T x (P,)
     mat, offset = state.shared("ego_projection")
     data = state.data
-    total = camera_motion_sum(gather_frames(depth, data.ei[edges]), mat[edges], offset[edges], data.pixels,
-                              data.target[edges],
+    total = camera_motion_sum(depth, data.ei[edges], mat[edges], offset[edges], data.pixels, data.target[edges],
                               data.static[edges], state.cma_max_px, state.cma_px_scale)
     return total / (2 * data.num_static)
 

@@ -214,7 +214,7 @@ class StageState:
 
     def shared_frames(self, name: str) -> list[torch.Tensor]:
         """The one (T,...) tensor of `name` as T leaves of (...), one per frame, their gradients
-        views of one (T,...) buffer (read them with `objectives.gather_frames`)."""
+        views of one (T,...) buffer (the GA and CMA kernels take them as they are)."""
         if name not in self._frames:
             (value,) = self.shared_value(name)
             grad = torch.zeros_like(value)

@@ -31,7 +31,7 @@ def test_global_alignment_zero_at_truth_and_hand_value_off_it():
     pts = torch.stack([inv(world[0]), inv(world[1])])  # views i and j of edge (0, 1)
     w = torch.full((2, 5), 0.5, dtype=torch.float64)
     frames, mat = torch.tensor([0, 1]), (scale[:, None, None] * rot).expand(2, 3, 3)
-    ga = lambda x: obj.global_alignment_sum(channels_first(x)[frames], channels_first(pts), w, mat, trans.expand(2, 3))  # noqa: E731
+    ga = lambda x: obj.global_alignment_sum(channels_first(x), frames, channels_first(pts), w, mat, trans.expand(2, 3))  # noqa: E731
     assert ga(world) < 1e-12
     shifted = world.clone()
     shifted[1] += torch.tensor([0.0, 3.0, 4.0], dtype=torch.float64)  # 5 units off, 5 pixels
@@ -53,12 +53,14 @@ def reference_cma(depth, frames, mat, offset, pixels, target, static, max_px, px
     return (err * keep).sum()
 
 
-def test_hand_written_gradients_equal_autograd_of_the_plain_formulas():
+@pytest.mark.parametrize("t, n, distinct", [(4, 7, False), (6, 4, True)])
+def test_hand_written_gradients_equal_autograd_of_the_plain_formulas(t, n, distinct):
+    """Frames gathered with repeats (their rows summed) and distinct in no order (rows routed)."""
     g = torch.Generator().manual_seed(1)
-    t, n, p = 4, 7, 60
+    p = 60
     world = torch.randn(t, p, 3, generator=g, dtype=torch.float64)
     mat, trans = torch.randn(n, 3, 3, generator=g, dtype=torch.float64), torch.randn(n, 3, generator=g, dtype=torch.float64)
-    frames = torch.randint(0, t, (n,), generator=g)
+    frames = torch.tensor([4, 0, 5, 2]) if distinct else torch.randint(0, t, (n,), generator=g)
     pts, w = torch.randn(n, p, 3, generator=g, dtype=torch.float64), torch.rand(n, p, generator=g, dtype=torch.float64)
     depth = torch.rand(t, p, generator=g, dtype=torch.float64) + 2.5
     depth[0, :5] = -1.0  # behind the camera: ignored
@@ -70,11 +72,9 @@ def test_hand_written_gradients_equal_autograd_of_the_plain_formulas():
     target = torch.randn(n, p, 2, generator=g, dtype=torch.float64) * 10
     static = torch.rand(n, p, generator=g) > 0.2
     cases = [
-        (lambda a, b, c: obj.global_alignment_sum(obj.gather_frames(channels_first(a).unbind(0), frames),
-                                                  channels_first(pts), w, b, c),
+        (lambda a, b, c: obj.global_alignment_sum(channels_first(a), frames, channels_first(pts), w, b, c),
          lambda a, b, c: reference_ga(a, frames, pts, w, b, c), (world, mat, trans)),
-        (lambda a, b, c: obj.camera_motion_sum(obj.gather_frames(a.unbind(0), frames), b, c, pixels.T,
-                                               channels_first(target), static, 30.0, 2.0),
+        (lambda a, b, c: obj.camera_motion_sum(a, frames, b, c, pixels.T, channels_first(target), static, 30.0, 2.0),
          lambda a, b, c: reference_cma(a, frames, b, c, pixels, target, static, 30.0, 2.0), (depth, proj, offset)),
     ]
     for fused, plain, inputs in cases:
@@ -106,7 +106,7 @@ def test_camera_motion_alignment_zero_for_ego_flow_and_l1_otherwise():
     flow = torch.zeros(1, 2, h * w, dtype=torch.float64)
     flow[:, 0] = -1.0
     static = torch.ones(1, h * w, dtype=torch.bool)
-    cma = lambda max_px, px_scale=1.0: obj.camera_motion_sum(depth[ei], mat, offset, grid, pixels + flow, static, max_px, px_scale)  # noqa: E731
+    cma = lambda max_px, px_scale=1.0: obj.camera_motion_sum(depth, ei, mat, offset, grid, pixels + flow, static, max_px, px_scale)  # noqa: E731
     assert cma(50.0) < 1e-9
     flow[:, 1] += 0.5  # every static pixel off by 0.5 px in y
     static[0, :4] = False
