@@ -292,24 +292,6 @@ def pts_targets(world: torch.Tensor, tracks: torch.Tensor, visible: torch.Tensor
     return targets, has_target
 
 
-def point_smoothness(world: torch.Tensor, targets: torch.Tensor, has_target: torch.Tensor) -> torch.Tensor:
-    """Mean L1 distance between world pointmaps (T,H,W,3) and PTS targets on frames with targets."""
-    if not bool(has_target.any()):
-        return world.sum() * 0.0
-    return (world[has_target] - targets[has_target]).abs().mean()
-
-
-def fixed_camera_pts(params, targets: torch.Tensor, has_target: torch.Tensor) -> tuple:
-    """PTS with the cameras fixed (stage 2 optimises depth only), as per-stage constants: the
-    frames with targets (t,), their world rays R K^-1 [u, v, 1] (t,3,P) and offsets camera centre
-    - target (t,3,P), so that a frame's world point minus its target is rays * depth + offset."""
-    with torch.no_grad():
-        frames = has_target.nonzero()[:, 0]  # (t,)
-        rays = torch.bmm(params.rotations()[frames], params.rays_channels_first()[frames])  # (t,3,P)
-        offset = params.trans[frames, :, None] - targets[frames].flatten(1, 2).transpose(1, 2)  # (t,3,P)
-    return frames, rays, offset.contiguous()
-
-
 class _FixedCameraL1(torch.autograd.Function):
     """mean |rays * exp(log_depth) + offset| over (t,3,P), the gradient to log-depth by hand:
     sum_c sign(diff_c) rays_c * depth / n (one pass where autograd's world points take ~5)."""
@@ -331,8 +313,11 @@ class _FixedCameraL1(torch.autograd.Function):
 
 def fixed_camera_point_smoothness(log_depth: torch.Tensor, frames: torch.Tensor, rays: torch.Tensor,
                                   offset: torch.Tensor) -> torch.Tensor:
-    """`point_smoothness` of the world points with cameras fixed (`fixed_camera_pts`'s constants):
-    log_depth (T,H,W) -> the mean L1 distance to the targets on the frames with targets."""
+    """PTS: the mean L1 distance between the world pointmaps and their targets on the frames with
+    targets, with the cameras fixed (stage 2 optimises depth only): log_depth (T,H,W); frames (t,)
+    the frames with targets, rays (t,3,P) their world rays R K^-1 [u, v, 1] and offset (t,3,P)
+    camera centre - target, so that a world point minus its target is rays * depth + offset
+    (`c4d_pipeline.optimize.fixed_camera_pts` builds them once per stage)."""
     if frames.numel() == 0:
         return log_depth.sum() * 0.0
     return _FixedCameraL1.apply(log_depth.flatten(1)[frames], rays, offset)
@@ -377,7 +362,7 @@ def objective(name: str, weight: str, stage: int, inputs: tuple[str, ...] = (), 
 # tensors whose gradients the edge chunks accumulate), `state.shared_frames(name)` (the same for
 # per-frame tensors, one leaf per frame, which GA and CMA take as they are),
 # `state.shared_value(name)` (either, attached to the parameters' graph), `state.cma_max_px`,
-# `state.cma_px_scale` and `state.pts_targets` (stage 2: `fixed_camera_pts`'s constants).
+# `state.cma_px_scale` and `state.pts_targets` (stage 2: `optimize.fixed_camera_pts`'s constants).
 
 
 @objective("ga", weight="ga", stage=1, inputs=("pointmaps",), per_edge=True)

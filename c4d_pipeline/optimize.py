@@ -151,6 +151,18 @@ def rescale_world(init: Initialisation, image_size: tuple[int, int], world_scale
                    edge_scale=init.edge_scale * factor, edge_translation=init.edge_translation * factor)
 
 
+def fixed_camera_pts(params: SceneParams, targets: torch.Tensor, has_target: torch.Tensor) -> tuple:
+    """Stage 2's PTS constants (poses and focals fixed there): the frames with targets (t,), their
+    world rays R K^-1 [u, v, 1] (t,3,P) and offsets camera centre - target (t,3,P), from the
+    targets (T,H,W,3) and has_target (T,) of `objectives.pts_targets`."""
+    with torch.no_grad():
+        frames = has_target.nonzero()[:, 0]  # (t,)
+        rays = pixel_rays(*params.image_size, params.focals(), params.principal)[frames]  # (t,H,W,3)
+        rays = torch.bmm(params.rotations()[frames], rays.flatten(1, 2).transpose(1, 2))  # (t,3,P)
+        offset = params.trans[frames, :, None] - targets[frames].flatten(1, 2).transpose(1, 2)  # (t,3,P)
+    return frames, rays, offset.contiguous()
+
+
 def _shared_cam(state):
     return (state.params.camera_points_channels_first(),)  # (T,3,P)
 
@@ -404,7 +416,7 @@ def optimise(
                 targets, has_target = objectives.pts_targets(
                     params.world_points(), torch.nan_to_num(trk, -1.0), vis, pc.window, pc.extend,
                     pc.kernel, pc.lam, pc.knn)
-                pts_targets = objectives.fixed_camera_pts(params, targets, has_target)
+                pts_targets = fixed_camera_pts(params, targets, has_target)
                 del targets
             history["seconds"]["pts_targets"] = time.perf_counter() - start
             history["cpu_seconds"]["pts_targets"] = time.process_time() - cpu_start

@@ -110,23 +110,15 @@ class SceneParams(nn.Module):
         rays = pixel_rays(*self.image_size, self.focals(), self.principal)  # (T,H,W,3)
         return rays * self.depth()[..., None]
 
-    def _pixel_offsets(self) -> torch.Tensor:
-        """(2,H*W) every pixel's [u - cx, v - cy]."""
-        height, width = self.image_size
-        v, u = torch.meshgrid(torch.arange(height, dtype=self.trans.dtype, device=self.trans.device),
-                              torch.arange(width, dtype=self.trans.dtype, device=self.trans.device), indexing="ij")
-        return torch.stack([u.flatten() - self.principal[0], v.flatten() - self.principal[1]])  # (2,P)
-
-    def rays_channels_first(self) -> torch.Tensor:
-        """(T,3,H*W) K^-1 [u, v, 1] of every pixel: its camera point per unit depth."""
-        xy = self._pixel_offsets()[None] / self.focals()[:, None, None]  # (T,2,P)
-        return torch.cat([xy, torch.ones_like(xy[:, :1])], 1)
-
     def camera_points_channels_first(self) -> torch.Tensor:
         """(T,3,H*W) the same points as `camera_points`, channels-first (the layout of the stage-1
         kernels; built without channels-last temporaries, whose backward is slow on CPU)."""
+        height, width = self.image_size
+        v, u = torch.meshgrid(torch.arange(height, dtype=self.trans.dtype, device=self.trans.device),
+                              torch.arange(width, dtype=self.trans.dtype, device=self.trans.device), indexing="ij")
+        offsets = torch.stack([u.flatten() - self.principal[0], v.flatten() - self.principal[1]])  # (2,P)
         depth = self.depth().flatten(1)[:, None]  # (T,1,P)
-        xy = self._pixel_offsets()[None] / self.focals()[:, None, None] * depth  # (T,2,P)
+        xy = offsets[None] / self.focals()[:, None, None] * depth  # (T,2,P)
         return torch.cat([xy, depth], 1)
 
     def world_points(self, cam_points: torch.Tensor | None = None) -> torch.Tensor:
