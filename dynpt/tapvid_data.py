@@ -3,8 +3,9 @@
 Files (downloaded by the user, see docs/TRAINING.md): `tapvid_davis.pkl`, a dict name ->
 {'video': uint8 (T,H,W,3), 'points': float (N,T,2) normalised (x, y) in [0,1], 'occluded': bool
 (N,T)}; Kinetics `NNNN_of_0010.pkl`, a list of such dicts with 'video' as an array of JPEG bytes.
-Videos are resized to 256x256; points become pixels of that raster (x * 256, no offset), then
-pixel-centre coordinates (- 0.5) as everywhere in this project. The TAP-Vid metrics only use
+Pickles are read with `c4d_core.pickles.read_data_pickle` (arrays and plain values only: a file
+naming any other class is refused, never run). Videos are resized to 256x256; points become
+pixels of that raster (x * 256, no offset), then pixel-centre coordinates (- 0.5) as everywhere in this project. The TAP-Vid metrics only use
 differences of coordinates, so the shift does not change any score.
 
 An evaluation item is a dict: `name`, `video` uint8 (T,H,W,3), `tracks` float32 (T,N,2),
@@ -14,7 +15,6 @@ An evaluation item is a dict: `name`, `video` uint8 (T,H,W,3), `tracks` float32 
 from __future__ import annotations
 
 import glob
-import pickle
 from pathlib import Path
 from typing import Iterator
 
@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from c4d_core.errors import UserError
+from c4d_core.pickles import read_data_pickle
 from c4d_core.geometry import swap_track_axes
 
 QUERY_STRIDE = 5  # the benchmark's 'strided' mode queries every 5th frame
@@ -39,6 +40,9 @@ def _decode_frames(video) -> np.ndarray:
 
 def tapvid_item(name: str, entry: dict, size: tuple[int, int] = (256, 256)) -> dict:
     """One pickle entry -> an evaluation item at `size` (H, W)."""
+    if not isinstance(entry, dict):
+        raise UserError(f"TAP-Vid entry {name!r} is a {type(entry).__name__}, not a dict of video, "
+                        "points and occluded: not a TAP-Vid pickle")
     missing = {"video", "points", "occluded"} - set(entry)
     if missing:
         raise UserError(f"TAP-Vid entry {name!r} lacks {sorted(missing)}: not a TAP-Vid pickle")
@@ -61,11 +65,11 @@ def read_tapvid(source: str | Path, size: tuple[int, int] = (256, 256)) -> Itera
         raise UserError(f"no TAP-Vid pickle at {str(source)!r}; give tapvid_davis.pkl or the "
                         "folder of Kinetics NNNN_of_0010.pkl files")
     for file in files:
-        try:
-            with open(file, "rb") as f:
-                data = pickle.load(f)
-        except (pickle.UnpicklingError, EOFError, OSError) as exc:
-            raise UserError(f"cannot read {file} as a pickle ({exc}); re-download it") from exc
+        data = read_data_pickle(file, "TAP-Vid pickle", "pass the file as the TAP-Vid release has it "
+                                "(re-download it)")
+        if not isinstance(data, (dict, list)):
+            raise UserError(f"{file} holds a {type(data).__name__}, not a TAP-Vid pickle (a dict or "
+                            "list of videos); pass tapvid_davis.pkl or the Kinetics *_of_0010.pkl files")
         entries = data.items() if isinstance(data, dict) else (
             (f"{file.stem}/{i:04d}", e) for i, e in enumerate(data))
         for name, entry in entries:

@@ -7,11 +7,11 @@ depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), enc_embed_dim=1024, ..
 code `eval`s that string; here it is parsed with `ast` into a name and a dict of literal keyword
 values, and anything that is not a literal (a call, an attribute, an expression) is refused.
 
-Security note: the `argparse.Namespace` in these files needs an unpickler beyond torch's tensor-only
-mode. `read_checkpoint` first tries `torch.load(weights_only=True)` with `argparse.Namespace` allowed;
-only if the file holds other Python objects (older training checkpoints) does it fall back to the
-full unpickler (`weights_only=False`, which can run code stored in the file). The project only ever
-loads files the user names on the command line, never downloads any.
+Security: a file a user names is data, never code. The `argparse.Namespace` of these files is the
+only Python object beyond tensors and plain values they need, so `read_checkpoint` reads them with
+`torch.load(weights_only=True)` and exactly that class allowed (`ALLOWED_GLOBALS`). A file holding
+anything else (a class that could run code when built) is refused in one line that says how to
+turn a file you trust into a plain one (`CONVERT_HINT`); the full unpickler is never used.
 
 A folder or a missing path, and why `torch.load` failed, are named as every reader of the project
 names them (`dynpt.torch_files`).
@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import argparse
 import ast
-import logging
 import math
-import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,8 +30,6 @@ import torch
 
 from c4d_core.errors import UserError
 from dynpt.torch_files import holds_objects, load_failure, require_file
-
-log = logging.getLogger(__name__)
 
 # Bare names the constructor strings use for numbers (`inf` comes from `from numpy import inf`).
 _NAMED_CONSTANTS = {"inf": math.inf, "nan": math.nan, "True": True, "False": False, "None": None}
@@ -100,18 +96,20 @@ def parse_constructor(text: str) -> tuple[str, dict[str, Any]]:
     return call.func.id, kwargs
 
 
+# The globals an official DUSt3R / MASt3R / MonST3R file needs: its training arguments.
+ALLOWED_GLOBALS = (argparse.Namespace,)
+
+# How to turn a trusted file with other Python objects into one this loader reads: its weights and
+# its arguments as a plain dict (`args.model` is read from a dict as from a Namespace).
+CONVERT_HINT = ("if you trust the file, convert it once: python -c \"import sys, torch; "
+                "c = torch.load(sys.argv[1], weights_only=False); "
+                "torch.save({'model': c['model'], 'args': vars(c['args'])}, sys.argv[2])\" IN OUT")
+
+
 def _torch_load(path: Path, map_location: Any) -> Any:
-    """`torch.load` in tensor-only mode with argparse.Namespace allowed; full unpickling as fallback
-    when the file holds other Python objects (not for bytes that are no pickle at all)."""
-    try:
-        with torch.serialization.safe_globals([argparse.Namespace]):
-            return torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError as exc:
-        if not holds_objects(exc):
-            raise
-        log.warning("%s holds Python objects beyond tensors and argparse.Namespace; loading it with "
-                    "the full unpickler because you named this file", path)
-        return torch.load(path, map_location=map_location, weights_only=False)
+    """`torch.load` in tensor-only mode with `ALLOWED_GLOBALS` allowed; nothing else is built."""
+    with torch.serialization.safe_globals(list(ALLOWED_GLOBALS)):
+        return torch.load(path, map_location=map_location, weights_only=True)
 
 
 def _constructor_string(args: Any) -> str:
@@ -135,8 +133,9 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> OfficialChec
     try:
         ckpt = _torch_load(path, map_location)
     except Exception as exc:  # a damaged file can fail anywhere inside the unpickler
+        hint = CONVERT_HINT if holds_objects(exc) else "download it again or pass another file"
         raise UserError(f"cannot read checkpoint {str(path)!r} ({load_failure(exc, path)}); "
-                        "download it again or pass another file") from exc
+                        f"{hint}") from exc
     if not isinstance(ckpt, dict):
         raise UserError(f"{str(path)!r} is not a checkpoint (a dict with 'model' and 'args'); pass an "
                         "official DUSt3R/MASt3R/MonST3R .pth file")
