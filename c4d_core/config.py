@@ -57,17 +57,35 @@ def resolve_preset(group: str, name_or_path: str | Path) -> Path:
     return preset
 
 
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """PyYAML's error in one line: where (line:column, 1-based) and what, e.g. "not valid YAML at
+    line 3, column 8: expected ',' or ']', but got ':'". Its full text (the quoted source and
+    caret) stays on the exception, which `--verbose` prints."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    problem = getattr(exc, "problem", None) or getattr(exc, "context", None) or str(exc)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return f"not valid YAML{where}: {' '.join(str(problem).split())}"
+
+
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> DictConfig:
     """Load one YAML file with its `_base_` chain merged underneath it."""
     path = path.resolve()
     if path in seen:
         raise UserError(f"config {path} inherits from itself through `_base_`")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        raw = path.read_bytes()
     except OSError as exc:
         raise UserError(f"cannot read config {path}: {exc.strerror}") from exc
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise UserError(f"config {path} is not UTF-8 text (byte 0x{raw[exc.start]:02x} on line "
+                        f"{line}); save it as UTF-8") from exc
+    try:
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
-        raise UserError(f"config {path} is not valid YAML: {exc}") from exc
+        raise UserError(f"config {path}: {yaml_problem(exc)}") from exc
     if not isinstance(data, dict):
         raise UserError(f"config {path} must be a mapping of keys to values at its top level")
     bases = data.pop("_base_", [])
@@ -130,7 +148,7 @@ def parse_overrides(overrides: Iterable[str]) -> dict:
         try:
             value = yaml.safe_load(raw) if raw.strip() else None
         except yaml.YAMLError as exc:
-            raise UserError(f"override {item!r}: value is not valid YAML ({exc})") from exc
+            raise UserError(f"override {item!r}: value is {yaml_problem(exc)}") from exc
         node = nested
         parts = key.strip().split(".")
         for part in parts[:-1]:

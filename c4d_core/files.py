@@ -4,6 +4,8 @@ Every package writes its outputs (shard index records, checkpoints, track files,
 pictures, reconstructions) through `atomic_path`: the data goes to a hidden temporary file next to
 the target, which is renamed over it only once complete. A crash or a full disk leaves the old
 file (or none), never a half-written one, so re-running a command resumes from what exists.
+An output that is a folder of many files read as one (a reconstruction) is written whole into
+`staged_folder`'s sibling and put in place when complete.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import contextlib
 import errno
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -80,6 +83,17 @@ def remove_quietly(path: Path) -> None:
         pass
 
 
+def remove_empty_folders(path: Path) -> None:
+    """Delete `path` and the folders below it if none holds a file (what a failed command created
+    before it wrote anything); anything else is left, and a failure is not reported."""
+    try:
+        for folder in sorted((p for p in path.rglob("*") if p.is_dir()), reverse=True):
+            folder.rmdir()
+        path.rmdir()
+    except OSError:
+        pass
+
+
 def make_folder(path: str | os.PathLike) -> Path:
     """Create the folder `path` and its parents (an existing one is fine); returns `path`. A
     failure (a file or a dangling link in the way, a read-only disk) becomes a `UserError`."""
@@ -89,6 +103,41 @@ def make_folder(path: str | os.PathLike) -> Path:
     except OSError as exc:
         raise disk_error(path, exc) from exc
     return path
+
+
+@contextlib.contextmanager
+def staged_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a sibling folder `PATH.partial` to write a whole output folder into; when the block
+    succeeds it becomes `path`, at once.
+
+    A folder already at `path` (a finished output the caller decided to replace, or an empty
+    folder) is kept untouched until then: the old folder is renamed aside and removed after the
+    new one is in place, an empty one receives the entries. On any exception the partial folder
+    is removed and `path` is as it was, so readers never see half an output or two outputs mixed.
+    """
+    path = Path(path)
+    stage = path.with_name(path.name + ".partial")
+    shutil.rmtree(stage, ignore_errors=True)  # a leftover of a killed run
+    try:
+        stage.mkdir(parents=True)
+        yield stage
+        if not path.exists():
+            os.replace(stage, path)
+        elif not any(path.iterdir()):  # an empty folder the user made (maybe a mount point)
+            for entry in stage.iterdir():
+                os.replace(entry, path / entry.name)
+            stage.rmdir()
+        else:
+            old = path.with_name(f".{path.name}.old{os.getpid()}")
+            os.replace(path, old)
+            os.replace(stage, path)
+            shutil.rmtree(old, ignore_errors=True)
+    except OSError as exc:
+        if exc.errno is None:
+            raise
+        raise disk_error(exc.filename or path, exc) from exc
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 @contextlib.contextmanager

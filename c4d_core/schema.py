@@ -18,6 +18,7 @@ To add a key: put it with its default and a comment into the root preset, and it
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
@@ -47,7 +48,8 @@ class Rule:
     shape: lengths of a list per nesting level (None = any length); ordered: a list's entries,
     or per coordinate the two rows of a (2, D) box, are non-decreasing;
     choices: the allowed values; nullable: null is allowed too (meaning given in the preset);
-    zero: 0 is allowed too, besides the range (meaning given in the preset, e.g. 'all').
+    zero: 0 is allowed too, besides the range (meaning given in the preset, e.g. 'all');
+    pattern: a string must match this regular expression in full, `spelled` says so in words.
     """
 
     kind: str
@@ -60,12 +62,16 @@ class Rule:
     nullable: bool = False
     zero: bool = False
     item: str = "float"
+    pattern: str = ""
+    spelled: str = ""
 
     def describe(self) -> str:
         """The valid values in words, e.g. 'an integer >= 2' or 'a list of 2 integers in [8, 4096]'."""
         number = {"int": "integer", "float": "number"}.get(self.kind if self.kind != "list" else self.item)
         if self.choices:
             text = "one of: " + ", ".join(str(c) for c in self.choices)
+        elif self.pattern:
+            text = self.spelled
         elif self.kind in ("bool", "str") or (self.kind == "list" and self.item == "str"):
             text = {"bool": "true or false", "str": "a string"}.get(self.kind, "a list of strings")
         else:
@@ -109,6 +115,8 @@ class Rule:
                 return all(isinstance(v, str) for v in value)
             return _shaped(value, self.shape) and all(self._number(v, self.item) for v in _flat(value)) \
                 and (not self.ordered or _ordered(value))
+        if self.pattern:
+            return isinstance(value, str) and re.fullmatch(self.pattern, value) is not None
         if self.kind in ("int", "float"):
             return self._number(value, self.kind) or (self.zero and value == 0 and Rule(self.kind).accepts(value))
         return isinstance(value, {"bool": bool, "str": str}[self.kind])
@@ -166,6 +174,12 @@ def flag() -> Rule:
 
 def text(*choices: str, nullable: bool = False) -> Rule:
     return Rule("str", choices=choices, nullable=nullable)
+
+
+def device() -> Rule:
+    """A torch device a command runs on: cpu, cuda or cuda:N (the names `torch.device` takes
+    that this project runs on)."""
+    return Rule("str", pattern=r"cpu|cuda(:[0-9]+)?", spelled="a torch device: cpu, cuda or cuda:N")
 
 
 def texts() -> Rule:
@@ -250,6 +264,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "model.window_len": integer(2), "model.window_stride": COUNT, "model.train_iters": COUNT,
         "model.eval_iters": COUNT, "model.resolution": tracker_size(nullable=True),
         "model.visibility_threshold": fraction(),
+        "model.visibility_rule": text("vis_conf", "vis"),
         "model.windowing": text("causal", "cotracker3_online", "cotracker3_offline"),
         "model.time_embedding": text("hidden", "cotracker3"), "model.time_emb_len": integer(2),
         "model.sampling": text("centers", "cotracker3"), "model.init_from": text(),
@@ -264,7 +279,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "data.max_stride": COUNT, "data.crop_size": tracker_size(), "data.num_tracks": COUNT,
         "data.random_query_fraction": fraction(), "data.moving_track_fraction": fraction(),
         "data.max_offscreen_px": PIXELS, "data.shuffle_buffer": COUNT, "data.num_workers": POSITIVE,
-        "data.max_bad_fraction": fraction(),
+        "data.max_bad_fraction": fraction(), "data.foreign": text("refuse", "skip"),
         "data.augment.scale_range": interval(above=0), "data.augment.hflip_prob": fraction(),
         "data.augment.vflip_prob": fraction(), "data.augment.jitter_prob": fraction(),
         "data.augment.brightness": number(0.0), "data.augment.contrast": number(0.0),
@@ -290,9 +305,10 @@ RULES: dict[str, dict[str, Rule]] = {
         "eval.source": text(), "eval.every": POSITIVE, "eval.num_scenes": POSITIVE,
         "eval.num_tracks": COUNT, "eval.resolution": tracker_size(), "eval.seed": SEED,
         "eval.query_mode": text("first", "strided"), "eval.best_metric": text(),
+        "eval.foreign": text("refuse", "skip"),
     },
     "c4d": {
-        "seed": SEED, "device": text(), "threads": POSITIVE, "flow": text(),
+        "seed": SEED, "device": device(), "threads": POSITIVE, "flow": text(),
         "video.stride": COUNT, "video.max_frames": integer(2, zero=True),  # 0: all; 1 frame: no pair
         "pointmaps.checkpoint": text(), "pointmaps.size": integer(0, MAX_SIDE),  # 0: the checkpoint's
         "pointmaps.batch": POSITIVE,

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from c4d_core.config import flag_overrides, load_config, to_yaml
 from c4d_core.errors import UserError
-from c4d_core.files import write_text
+from c4d_core.files import staged_folder, write_text
 from c4d_core.system import configure_threads
 
 log = logging.getLogger("c4d.run")
@@ -41,6 +41,8 @@ RUN_FLAGS = {"pointmaps": "pointmaps.checkpoint", "tracker": "tracker.checkpoint
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("video", help="video file (mp4, avi, ...) or folder of frames (sorted by name)")
     parser.add_argument("--out", required=True, help="output folder (created; files of the C4D output table)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the reconstruction "
+                        "already in --out (kept until the new one is complete)")
     parser.add_argument("--pointmaps", metavar="CKPT", help="DUSt3R / MASt3R / MonST3R checkpoint (.pth) "
                         "for the pairwise pointmaps (key pointmaps.checkpoint; required)")
     parser.add_argument("--tracker", metavar="CKPT", help="DynPT checkpoint from `c4d train`; without it "
@@ -77,6 +79,22 @@ def _check_file(path: str, what: str, flag: str) -> None:
         require_file(Path(path), what, f"give the path of a local file with {flag}")
 
 
+def _check_out(out: Path, overwrite: bool) -> None:
+    """`UserError` unless `out` is new, an empty folder, or (with --overwrite) a reconstruction."""
+    from c4d_pipeline.outputs import is_reconstruction
+
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {str(out)!r} is a file; give a folder")
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    if not is_reconstruction(out):
+        raise UserError(f"--out {str(out)!r} already holds files that are not a reconstruction; "
+                        "give a new or empty folder")
+    if not overwrite:
+        raise UserError(f"--out {str(out)!r} already holds a reconstruction; pass --overwrite to "
+                        "replace it (it is kept until the new one is complete) or give another folder")
+
+
 class _FlowWithProgress:
     """Runs a flow estimator over the pairs in chunks, with a progress bar."""
 
@@ -108,8 +126,7 @@ def run(args: argparse.Namespace) -> int:
     _check_file(cfg.pointmaps.checkpoint, "pointmap checkpoint", "--pointmaps")
     _check_file(cfg.tracker.checkpoint, "tracker checkpoint", "--tracker")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {str(out)!r} is a file; give a folder")
+    _check_out(out, args.overwrite)
     seconds: dict[str, float] = {}
 
     start = time.perf_counter()
@@ -142,29 +159,31 @@ def run(args: argparse.Namespace) -> int:
                         "a reconstruction needs at least 2: lower the stride or use a longer video")
     graph_from_config(T, cfg.graph)  # a graph that does not connect the frames: refused here
 
-    write_text(out / "config.yaml", to_yaml(cfg))  # every input read: what runs now
+    # 3 and 4 write into OUT.partial, which becomes OUT when complete (an old OUT stays till then).
+    with staged_folder(out) as stage:
+        write_text(stage / "config.yaml", to_yaml(cfg))  # every input read: what runs now
 
-    # 3. Tracks on the same frames.
-    tracks = None
-    if tracker is not None:
-        start = time.perf_counter()
-        log.info("tracking points (grid %d px)", cfg.tracker.grid_size)
-        tracks = tracker.track(frames, grid_size=cfg.tracker.grid_size, seed=int(cfg.seed))
-        seconds["tracking"] = time.perf_counter() - start
+        # 3. Tracks on the same frames.
+        tracks = None
+        if tracker is not None:
+            start = time.perf_counter()
+            log.info("tracking points (grid %d px)", cfg.tracker.grid_size)
+            tracks = tracker.track(frames, grid_size=cfg.tracker.grid_size, seed=int(cfg.seed))
+            seconds["tracking"] = time.perf_counter() - start
 
-    # 4. Pointmaps, flow, masks, optimisation, files.
-    log.info("reconstructing: pointmaps, optical flow (%s), motion masks, optimisation", cfg.flow)
-    inputs = {
-        "video": str(Path(args.video).resolve()),
-        "pointmaps_checkpoint": str(Path(cfg.pointmaps.checkpoint).resolve()),
-        "tracker_checkpoint": str(Path(cfg.tracker.checkpoint).resolve()) if cfg.tracker.checkpoint else None,
-        "network_size": size, "frame_indices": video.source_indices.tolist(),
-        "source_hw": list(video.preprocessing.source_hw), "resized_hw": list(video.preprocessing.resized_hw),
-        "crop_xy": list(video.preprocessing.crop_xy),
-        "seconds_before_reconstruction": seconds,
-    }
-    rec = reconstruct(frames, source, flow, tracks, cfg, out, inputs={**inputs, "fps": video.fps},
-                      timestamps=video.timestamps)
+        # 4. Pointmaps, flow, masks, optimisation, files.
+        log.info("reconstructing: pointmaps, optical flow (%s), motion masks, optimisation", cfg.flow)
+        inputs = {
+            "video": str(Path(args.video).resolve()),
+            "pointmaps_checkpoint": str(Path(cfg.pointmaps.checkpoint).resolve()),
+            "tracker_checkpoint": str(Path(cfg.tracker.checkpoint).resolve()) if cfg.tracker.checkpoint else None,
+            "network_size": size, "frame_indices": video.source_indices.tolist(),
+            "source_hw": list(video.preprocessing.source_hw), "resized_hw": list(video.preprocessing.resized_hw),
+            "crop_xy": list(video.preprocessing.crop_xy),
+            "seconds_before_reconstruction": seconds,
+        }
+        rec = reconstruct(frames, source, flow, tracks, cfg, stage, inputs={**inputs, "fps": video.fps},
+                          timestamps=video.timestamps)
     stage_seconds = rec.report["seconds"]
     log.info("wrote %s (%s)", out, ", ".join(f"{k} {v:.1f}s" for k, v in {**seconds, **stage_seconds}.items()))
     return 0

@@ -159,6 +159,15 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.asarray(colors)[:, :3].astype(np.uint8)
 
 
+MARKER_FILES = ("poses_tum.txt", "pointmaps.npz", "report.json")  # any one marks a reconstruction
+
+
+def is_reconstruction(path: str | Path) -> bool:
+    """True if `path` is a directory that looks like the output of `c4d run`."""
+    path = Path(path)
+    return path.is_dir() and any((path / name).is_file() for name in MARKER_FILES)
+
+
 def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_stride: int = 2,
                          ply_static_frame_stride: int = 5, ply_min_confidence: float = 1.0) -> Path:
     """Write every file of the output table into `out_dir` (created); returns its path."""

@@ -16,8 +16,10 @@ import numpy as np
 
 import datagen
 from c4d_core import geometry
+from c4d_core.config import to_dict
 from datagen import annotate, render
 from datagen.assets import AssetLibrary, load_asset_library
+from datagen.jobs import config_digest
 from datagen.sampling import SceneDescription, sample_scene
 from datagen.scene import Scene
 from datagen.simulate import SimulationResult, simulate
@@ -98,6 +100,7 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
         })
     meta = {
         "preset": str(cfg.preset), "seed": int(cfg.seed), "scene_index": int(scene_index),
+        "config_digest": config_digest(to_dict(cfg)),
         "fps": int(description.fps), "resolution": [height, width],
         "num_frames": num_frames, "split": str(cfg.split),
         "motion_blur": description.motion_blur, "blur_samples": num_samples,

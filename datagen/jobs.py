@@ -8,6 +8,8 @@ with no coordinator, write one dataset; a finished shard is never written again.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import re
 from dataclasses import dataclass
@@ -17,6 +19,13 @@ from typing import Mapping
 from c4d_core.errors import UserError
 
 SHARD_PATTERN = "{split}-{shard:06d}.tar"
+
+
+def config_digest(config: Mapping) -> str:
+    """16 hex digits identifying a resolved datagen config (a plain dict): every scene's
+    `meta["config_digest"]`, checked against the dataset file's `config` when the scene is read."""
+    text = json.dumps(config, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 # (index variable, count variable, first-index variable or None), in order of preference.
 TASK_ENVIRONMENTS = (

@@ -4,6 +4,11 @@ One scene is one webdataset sample: tar members `<key>.<field>.<ext>` next to ea
 `<key>` is `{split}-{scene_index:08d}`; which member holds each field and its bytes are
 `datagen.codecs` (docs/FORMAT.md). A shard's scenes are listed by the dataset file beside it
 (`dataset_record`).
+
+A dataset folder is one dataset: where a folder holds a dataset file, `iter_samples` refuses
+(`ForeignData`, one line naming the file) a shard that is not one of its shards (a name not of
+its `shard_pattern`, an index beyond `num_shards`) and a scene that is not one of its scenes (a
+key that does not belong to that shard or repeats, another seed, split, size or config).
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from c4d_core.files import disk_error, remove_quietly
 from datagen.codecs import (ARRAY_FIELDS, CHECKSUMS, FORMAT_1_RGB, REQUIRED_FIELDS, crc32,
                             decode_array, decode_field, encode_field, member_suffix, to_json_bytes,
                             wrong_layout)
-from datagen.jobs import SHARD_PATTERN
+from datagen.jobs import SHARD_PATTERN, config_digest
 from datagen.scene import Scene
 
 KEY_PATTERN = "{split}-{scene_index:08d}"
@@ -294,7 +299,8 @@ def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iter
     if os.path.isdir(shard):
         raise UserError(f"shard {shard} is a folder, not a shard (a .tar file); move it out of "
                         "the shard set or rerun `c4d datagen`")
-    version = dataset_record(shard).get("format_version")
+    belongs = DatasetMember.of(shard)
+    version = belongs.record.get("format_version") if belongs else None
     wanted = None if fields is None else {*fields, *ALWAYS_READ}
     sample: dict[str, Any] = {}
     name = ""
@@ -306,7 +312,10 @@ def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iter
                 if not member.isfile():
                     continue
                 key, _, suffix = os.path.basename(name).partition(".")
-                if sample and key != sample["__key__"]:
+                # a new scene: another key, or the same key again (a member repeats)
+                if sample and (key != sample["__key__"] or suffix in sample["__members__"]):
+                    if belongs:
+                        belongs.check(sample)
                     yield sample
                     sample = {}
                 if not sample:
@@ -333,6 +342,8 @@ def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iter
         )
         error.__cause__ = exc
     if sample and (error is None or member_suffix("meta") in sample):
+        if belongs:
+            belongs.check(sample)
         yield sample  # the last scene; before an error only if read in full
     if error is not None:
         raise error
@@ -360,6 +371,77 @@ def dataset_record(shard: str | Path) -> dict[str, Any]:
     num_shards, ...) beside `shard`; {} if there is none or it cannot be read."""
     parsed = _split_and_index(shard)
     return {} if parsed is None else _read_dataset_file(Path(shard).parent, parsed[0])
+
+
+class ForeignData(UserError):
+    """A shard or scene in a dataset folder that is not part of the dataset its file describes."""
+
+
+class DatasetMember:
+    """What the dataset file beside a shard says the shard must hold: its name, its scene keys
+    in order, and its scenes' seed, split, size and config digest. `check` raises `ForeignData`."""
+
+    def __init__(self, shard: str, record: dict[str, Any], split: str, index: int):
+        self.shard, self.record = shard, record
+        config = record.get("config") if isinstance(record.get("config"), dict) else {}
+        self.identity = {"seed": record.get("seed"), "split": split,
+                         "resolution": config.get("resolution"), "num_frames": config.get("frames")}
+        self.digest = config_digest(config) if config else None
+        per_shard, total = record.get("scenes_per_shard"), record.get("num_scenes")
+        self.keys: list[str] | None = None
+        if isinstance(per_shard, int) and isinstance(total, int):
+            self.keys = [scene_key(split, i) for i in
+                         range(index * per_shard, min((index + 1) * per_shard, total))]
+        self.seen: set[str] = set()
+
+    @classmethod
+    def of(cls, shard: str | Path) -> "DatasetMember | None":
+        """The membership of `shard` in the dataset of its folder; None where the folder holds no
+        dataset file (loose shards). Raises `ForeignData` for a shard that is not one of its
+        shards by name."""
+        shard = str(shard)
+        folder, name = Path(shard).parent, Path(shard).name
+        if not any(folder.glob(DATASET_FILE.format(split="*"))):
+            return None
+        parsed = _split_and_index(shard)
+        record = _read_dataset_file(folder, parsed[0]) if parsed else {}
+        pattern = str(record.get("shard_pattern", SHARD_PATTERN))
+        if not record or name != pattern.format(split=parsed[0], shard=parsed[1]):
+            raise ForeignData(f"{shard} does not belong to the dataset in {folder}: its name is not "
+                              f"of the dataset's shard_pattern {pattern!r} (from the dataset-SPLIT.json "
+                              "there); move it out of the folder")
+        num_shards = record.get("num_shards")
+        if isinstance(num_shards, int) and parsed[1] >= num_shards:
+            raise ForeignData(f"{shard} does not belong to the dataset in {folder}: shard index "
+                              f"{parsed[1]} is beyond its num_shards={num_shards}; move it out of "
+                              "the folder")
+        return cls(shard, record, parsed[0], parsed[1])
+
+    def check(self, sample: dict[str, Any]) -> None:
+        """`ForeignData` unless `sample` (raw, with its meta member) is one of this shard's scenes."""
+        key = sample["__key__"]
+        if self.keys is not None and key not in self.keys:
+            raise ForeignData(f"{self.shard}: scene {key!r} does not belong to this shard of the "
+                              f"dataset (it holds {self.keys[0]} .. {self.keys[-1]}); the shard is "
+                              "from another dataset: move it out of the folder")
+        if key in self.seen:
+            raise ForeignData(f"{self.shard}: scene key {key!r} repeats; the shard was not written "
+                              "by `c4d datagen` for this dataset: move it out of the folder")
+        self.seen.add(key)
+        raw = sample.get(member_suffix("meta"))
+        try:
+            meta = json.loads(bytes(raw).decode("utf-8")) if raw is not None else {}
+        except (UnicodeDecodeError, ValueError):
+            return  # a corrupt meta: `decode_scene` reports it
+        meta = meta if isinstance(meta, dict) else {}
+        differs = [f"{name} {meta[name]!r}, the dataset's {want!r}" for name, want in self.identity.items()
+                   if name in meta and want is not None and meta[name] != want]
+        if not differs and self.digest and meta.get("config_digest", self.digest) != self.digest:
+            differs.append(f"another config: config_digest {meta['config_digest']!r}, the dataset's "
+                           f"{self.digest!r}")
+        if differs:
+            raise ForeignData(f"{self.shard}: scene {key!r} is from another dataset ({'; '.join(differs)}) "
+                              "than the dataset file beside it describes; move the shard out of the folder")
 
 
 def scenes_in_shard(shard: str | Path) -> int | None:

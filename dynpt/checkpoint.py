@@ -67,6 +67,7 @@ def load_checkpoint(path: str | os.PathLike, model_cfg: Mapping | None = None) -
 
 # keys that only steer inference or name a file: they may differ without changing the weights
 _NON_ARCHITECTURE = {"window_stride", "train_iters", "eval_iters", "resolution", "visibility_threshold",
+                     "visibility_rule",
                      "checkpoint", "require_checkpoint", "random_init", "init_from"}
 
 

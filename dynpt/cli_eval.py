@@ -10,6 +10,7 @@ from omegaconf import OmegaConf
 
 from c4d_core.config import flag_overrides, load_config, parse_overrides
 from c4d_core.errors import UserError
+from c4d_core.schema import device as device_rule
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
     from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
     from dynpt.inference import Tracker
 
+    if args.device is not None:
+        device_rule().check("--device", args.device)
     ckpt = load_checkpoint(args.ckpt)
     overrides = [*args.overrides, *flag_overrides({"eval.query_mode": args.mode}, args.overrides)]
     cfg = eval_config(ckpt, args.config, overrides)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from c4d_core.errors import UserError
+from c4d_core.schema import device as device_rule
 from c4d_core.geometry import rescale_pixels
 
 log = logging.getLogger("c4d.track")
@@ -81,6 +82,12 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {value}")
     if args.support_grid < 0 or args.support_grid == 1:
         raise UserError("--support-grid must be 0 (none) or at least 2")
+    if args.device is not None:
+        device_rule().check("--device", args.device)
+    if args.seed < 0:
+        raise UserError(f"--seed must be 0 or more, got {args.seed}")
+    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+        raise UserError(f"--fps must be a positive number of frames per second, got {args.fps}")
     source = read_video(args.video, stride=args.stride, max_frames=args.max_frames)
     video = resize_long_side(source, args.size, args.max_size)
     (T, H0, W0), (H, W) = source.shape[:3], video.shape[1:3]

@@ -94,7 +94,60 @@ def read_state(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     if not isinstance(state, Mapping) or not is_cotracker3_state(state):
         raise UserError(f"{str(path)!r} is not a CoTracker3 checkpoint (no fnet.* / updateformer.* "
                         "tensors); expected scaled_offline.pth, scaled_online.pth or the like")
+    check_state(state, repr(str(path)))
     return dict(state)
+
+
+# The tensors whose shapes give a DynPT config its sizes (`config_from_state`), with their ranks.
+SIZE_TENSORS = {
+    "time_emb": 3, "corr_mlp.fc1.weight": 2, "corr_mlp.fc2.weight": 2,
+    "updateformer.input_transform.weight": 2, "updateformer.virual_tracks": 4,
+    "updateformer.time_blocks.0.mlp.fc1.weight": 2, "fnet.conv3.weight": 4,
+    **{f"fnet.layer{i}.0.conv1.weight": 4 for i in range(1, 5)},
+}
+
+
+def check_state(state: Mapping[str, torch.Tensor], source: str = "file") -> None:
+    """`UserError`, one line naming the tensor at fault, unless `state` is a whole CoTracker3 state
+    dict whose sizes agree with each other: every name CoTracker3's (a CoTracker2 file has others),
+    every tensor the sizes are read from present with its rank, the correlation MLP taking a
+    (2r+1)^4 patch, and the input projection (and the time embedding added before it) as wide as
+    2 + levels x corr_mlp.fc2's outputs + the displacement encoding."""
+    for key, value in state.items():
+        if dynpt_key(key) is None:
+            raise UserError(f"{source}: tensor {key!r} is not part of CoTracker3's network; "
+                            "not a CoTracker3 checkpoint, or another version (CoTracker2?)")
+        if not isinstance(value, torch.Tensor):
+            raise UserError(f"{source}: {key!r} is a {type(value).__name__}, not a tensor; "
+                            "not a CoTracker3 checkpoint")
+    for key, rank in SIZE_TENSORS.items():
+        if key not in state:
+            raise UserError(f"{source}: no tensor {key!r}; the file lacks part of CoTracker3's "
+                            "network (a released file holds all 188)")
+        if state[key].dim() != rank:
+            raise UserError(f"{source}: {key} is {tuple(state[key].shape)}, CoTracker3's has "
+                            f"{rank} dimensions; not a CoTracker3 checkpoint")
+    cells = state["corr_mlp.fc1.weight"].shape[1]
+    k = round(cells ** 0.25)
+    if k ** 4 != cells or k % 2 == 0:
+        raise UserError(f"{source}: corr_mlp.fc1.weight has {cells} inputs, not the (2r+1)^4 of a "
+                        "square correlation patch; not a CoTracker3 checkpoint")
+    hidden, tokens = state["updateformer.input_transform.weight"].shape
+    corr_out = state["corr_mlp.fc2.weight"].shape[0]
+    encoding = 4 * (1 + 2 * COTRACKER3_FOURIER_FREQS)  # forward and backward (dx, dy), raw + sin/cos
+    if tokens - 2 - encoding <= 0 or (tokens - 2 - encoding) % corr_out:
+        raise UserError(f"{source}: updateformer.input_transform.weight has {tokens} token inputs; "
+                        f"CoTracker3's are 2 + levels x {corr_out} (corr_mlp.fc2's outputs) + "
+                        f"{encoding}, e.g. {2 + 4 * corr_out + encoding}")
+    if state["time_emb"].shape[-1] != tokens:
+        raise UserError(f"{source}: time_emb is {state['time_emb'].shape[-1]} wide but "
+                        f"updateformer.input_transform.weight takes {tokens} token inputs; they "
+                        "must agree (the embedding is added to the token)")
+    if hidden % COTRACKER3_HEAD_DIM or state["updateformer.virual_tracks"].shape[-1] != hidden:
+        raise UserError(f"{source}: updateformer.virual_tracks is "
+                        f"{tuple(state['updateformer.virual_tracks'].shape)} for a transformer "
+                        f"{hidden} wide; CoTracker3's width is a multiple of {COTRACKER3_HEAD_DIM} "
+                        "and its virtual tracks have it")
 
 
 def _token_columns(x: torch.Tensor, posenc_start: int, fourier_freqs: int) -> torch.Tensor:
@@ -121,6 +174,7 @@ def map_state(state: Mapping[str, torch.Tensor], model_config: Mapping, target: 
     `target` is the DynPT model's own state dict (names and shapes to fit); `model_config` its
     config (for the token layout). `UserError` (one line) on any key or shape that does not fit.
     """
+    check_state(state, source)
     c = model_config
     if c["time_embedding"] != "cotracker3" and "time_emb" in state:
         raise UserError("CoTracker3 weights need model.time_embedding=cotracker3 (its time embedding "
@@ -128,10 +182,7 @@ def map_state(state: Mapping[str, torch.Tensor], model_config: Mapping, target: 
     posenc_start = 2 + c["corr_levels"] * c["corr_out_dim"]
     out: dict[str, torch.Tensor] = {}
     for key, value in state.items():
-        name = dynpt_key(key)
-        if name is None:
-            raise UserError(f"{source}: tensor {key!r} is not part of CoTracker3's network; "
-                            "not a CoTracker3 checkpoint, or another version (CoTracker2?)")
+        name = dynpt_key(key)  # never None: check_state refused other names
         if name == "transformer.flow_head.weight" and value.shape[0] == 4 or \
                 name == "transformer.flow_head.bias" and value.shape[0] == 4:  # one head for all four
             field = name.rsplit(".", 1)[1]
@@ -165,17 +216,23 @@ def map_state(state: Mapping[str, torch.Tensor], model_config: Mapping, target: 
     return out, missing
 
 
+def release_windowing(state: Mapping[str, torch.Tensor]) -> str:
+    """"cotracker3_offline" for a time embedding of more than 16 rows (the offline release has
+    60), else "cotracker3_online" (16-frame windows moved by 8, as released)."""
+    return "cotracker3_offline" if state["time_emb"].shape[1] > 16 else "cotracker3_online"
+
+
 def config_from_state(state: Mapping[str, torch.Tensor], base: Mapping, windowing: str | None = None) -> dict:
     """A DynPT model config with the sizes of a CoTracker3 state dict; the other keys from `base`.
 
-    `windowing` None: "cotracker3_offline" for a time embedding of more than 16 rows (the offline
-    release has 60), else "cotracker3_online" (16-frame windows moved by 8, as released).
+    `windowing` None: `release_windowing(state)`.
     """
+    check_state(state)
     fc1, fc2 = state["corr_mlp.fc1.weight"], state["corr_mlp.fc2.weight"]
     hidden, tokens = state["updateformer.input_transform.weight"].shape
     depth = len({k.split(".")[2] for k in state if k.startswith("updateformer.time_blocks.")})
     rows = state["time_emb"].shape[1]
-    windowing = windowing or ("cotracker3_offline" if rows > 16 else "cotracker3_online")
+    windowing = windowing or release_windowing(state)
     levels = (tokens - 2 - 4 * (1 + 2 * COTRACKER3_FOURIER_FREQS)) // fc2.shape[0]
     cfg = dict(base)
     cfg.update(
@@ -214,9 +271,12 @@ def load_into(model: torch.nn.Module, path: str | os.PathLike, state: Mapping | 
 
 def build_from_file(path: str | os.PathLike, windowing: str | None = None):
     """A DynPT with the sizes and weights of a CoTracker3 file (mobility head fresh; see
-    `config_from_state` for `windowing`); the other model keys from model/cotracker3-offline.yaml."""
+    `config_from_state` for `windowing`); the other model keys, such as the visibility rule of
+    CoTracker3's predictor for these weights, from model/cotracker3-offline.yaml or -online.yaml."""
     state = read_state(path)
-    base = plain_config(load_config("dynpt", "model/cotracker3-offline").model)
+    windowing = windowing or release_windowing(state)
+    preset = "offline" if windowing == "cotracker3_offline" else "online"
+    base = plain_config(load_config("dynpt", f"model/cotracker3-{preset}").model)
     model = build_model(config_from_state(state, base, windowing))
     load_into(model, path, state)
     return model

@@ -20,6 +20,10 @@ of a truncated shard, is skipped with a warning naming shard and sample and coun
 shard as the scenes it lost, when the dataset file beside it tells; else as one); every sample
 carries `counts` int64 [read, bad] of its loader split. A split stops with a `UserError` once
 more than `data.max_bad_fraction` of its samples are bad (counted from 100 samples on).
+Data of another dataset in a source folder (`datagen.shards.ForeignData`: a shard not of its
+pattern or beyond its `num_shards`, a scene of another seed, size or config, a misplaced or
+repeated key) stops training with one line, or with `data.foreign=skip` is skipped with a
+warning (the rest of that shard; not counted as bad).
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from c4d_core.errors import UserError
 from datagen.scene import Scene
-from datagen.shards import decode_scene, iter_samples, list_shards, lost_scenes
+from datagen.shards import ForeignData, decode_scene, iter_samples, list_shards, lost_scenes
 from dynpt.augment import augment_clip
 from dynpt.device import pin_memory
 
@@ -176,6 +180,11 @@ class ShardStream(IterableDataset):
                     buffer.append(sample)
                     if len(buffer) >= self.cfg.shuffle_buffer:
                         yield buffer.pop(int(rng.integers(len(buffer))))
+            except ForeignData as exc:  # not part of the dataset: refused, or skipped on request
+                if self.cfg.foreign != "skip":
+                    raise UserError(f"{exc} (or set data.foreign=skip to skip such shards with a "
+                                    "warning)") from None
+                log.warning("skipping the rest of a shard of another dataset: %s", exc)
             except UserError as exc:  # a truncated or damaged tar: its rest is lost
                 lost = lost_scenes(shards[shard_id], read)
                 mine_lost = lost if by_shard else sum(

@@ -22,7 +22,7 @@ from c4d_core.draw import contact_sheet, draw_tracks_enlarged
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
 from c4d_core.geometry import swap_track_axes
-from datagen.shards import decode_scene, iter_samples, list_shards, lost_scenes
+from datagen.shards import ForeignData, decode_scene, iter_samples, list_shards, lost_scenes
 from dynpt.augment import resize_clip
 from dynpt.metrics import dynamic_accuracy, paired_bootstrap_interval, tapvid_metrics
 from dynpt.tapvid_data import read_tapvid, sample_queries
@@ -86,6 +86,11 @@ def load_eval_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list
                     skip(exc)
                     continue
                 items.append(scene_item(scene, len(items) + len(skipped), eval_cfg))
+        except ForeignData as exc:  # not part of the dataset: refused, or skipped on request
+            if eval_cfg.foreign != "skip":
+                raise UserError(f"{exc} (or set eval.foreign=skip to skip such shards with a "
+                                "warning)") from None
+            log.warning("skipping the rest of a shard of another dataset: %s", exc)
         except UserError as exc:  # a truncated or damaged tar: its rest is lost
             skip(exc)
             skipped.extend([str(exc)] * (lost_scenes(shard, read) - 1))  # one per scene lost

@@ -100,6 +100,17 @@ def _check_queries(queries, T: int, H: int, W: int) -> np.ndarray:
     return q
 
 
+def visibility(vis: torch.Tensor, conf: torch.Tensor, rule: str, threshold: float) -> torch.Tensor:
+    """Visible flags (bool, same shape) from visibility and confidence probabilities (in [0, 1]):
+    rule "vis_conf" is vis * conf > threshold (CoTracker3's online predictor, 0.6), "vis" is
+    vis > threshold (its offline predictor, 0.9); the model config carries both."""
+    if rule == "vis":
+        return vis > threshold
+    if rule == "vis_conf":
+        return vis * conf > threshold
+    raise UserError(f"model.visibility_rule={rule!r}: choose vis_conf or vis")
+
+
 class Tracker:
     """A DynPT model in eval mode on a device, tracking whole videos."""
 
@@ -138,18 +149,20 @@ class Tracker:
         return out.coords[-1][0].float(), logits[0].float(), out.valid[0]
 
     def _predict(self, video: torch.Tensor, queries: np.ndarray, backward: bool):
-        """Forward pass, plus a pass over the reversed video for queries after frame 0."""
+        """Forward pass, plus (as CoTracker3's predictor with backward tracking) a pass of every
+        query over the reversed video whose results fill the frames before each query frame."""
         coords, logits, done = self._run(video, queries)  # (T,N,2), (T,N,3), (T,N)
-        later = np.nonzero(queries[:, 0] > 0)[0]
-        if backward and len(later):
-            rev = queries[later].copy()
-            rev[:, 0] = video.shape[1] - 1 - rev[:, 0]
+        T = video.shape[1]
+        tq = torch.from_numpy(queries[:, 0]).to(self.device)
+        before = torch.arange(T, device=self.device)[:, None] < tq[None]  # (T,N)
+        if backward and before.any():
+            rev = queries.copy()
+            rev[:, 0] = T - 1 - rev[:, 0]
             b_coords, b_logits, _ = self._run(video.flip(1), rev)
-            idx = torch.from_numpy(later).to(self.device)
-            fill = ~done[:, idx, None]  # (T,n,1) frames before the query frame
-            coords[:, idx] = torch.where(fill, b_coords.flip(0), coords[:, idx])  # back in forward time
-            logits[:, idx] = torch.where(fill, b_logits.flip(0), logits[:, idx])
-            done[:, idx] = True
+            fill = before[..., None]  # (T,N,1)
+            coords = torch.where(fill, b_coords.flip(0), coords)  # back in forward time
+            logits = torch.where(fill, b_logits.flip(0), logits)
+            done = done | before
         return coords, logits, done
 
     @torch.inference_mode()
@@ -199,7 +212,8 @@ class Tracker:
         coords[..., 0] = rescale_pixels(coords[..., 0], sx, inverse=True)
         coords[..., 1] = rescale_pixels(coords[..., 1], sy, inverse=True)
         prob = torch.sigmoid(logits)  # (T,N,3)
-        visible = prob[..., 0] * prob[..., 1] > cfg["visibility_threshold"]
+        visible = visibility(prob[..., 0], prob[..., 1], cfg["visibility_rule"],
+                             cfg["visibility_threshold"])
         confidence, moving = prob[..., 1], prob[..., 2]
         # the query frame is known exactly; frames not predicted get neutral values
         tq = torch.from_numpy(queries[:, 0]).long().to(self.device)

@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 
 # model keys added after the first checkpoints were written: their values there (old configs lack them)
 COMPAT_DEFAULTS = {"time_embedding": "hidden", "time_emb_len": 16, "sampling": "centers",
-                   "windowing": "causal", "init_from": ""}
+                   "windowing": "causal", "init_from": "", "visibility_rule": "vis_conf"}
 WINDOWINGS = ("causal", "cotracker3_online", "cotracker3_offline")
 
 

@@ -37,7 +37,7 @@ def holds_objects(exc: Exception) -> bool:
     """Whether a tensor-only `torch.load` failed on a Python object it may not build (a pickled
     class), rather than on bytes that are no pickle at all."""
     return isinstance(exc, pickle.UnpicklingError) and bool(
-        re.search(r"Unsupported global|GLOBAL ", str(exc)))
+        re.search(r"Unsupported global|GLOBAL |allowlisted via", str(exc)))
 
 
 def load_failure(exc: Exception, path: Path) -> str:
@@ -45,7 +45,8 @@ def load_failure(exc: Exception, path: Path) -> str:
     passed on: it advises loading with weights_only=False (unsafe for a file of unknown origin),
     carries terminal colour codes, and says "weights_only" even for random bytes."""
     if holds_objects(exc):
-        found = re.search(r"GLOBAL ([\w.]+)", str(exc))
+        found = (re.search(r"GLOBAL ([\w.]+)", str(exc))
+                 or re.search(r"allowlisted via `?\w+`?, but got <class '([\w.]+)'>", str(exc)))
         return ("it holds Python objects other than tensors and plain values"
                 + (f" ({found[1]})" if found else ""))
     if isinstance(exc, OSError) and exc.errno not in (None, errno.EINVAL) and exc.strerror:

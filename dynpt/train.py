@@ -542,6 +542,13 @@ def train(cfg, resume: bool = False) -> dict:
             return trainer.fit()
         finally:
             trainer.close()
+    except KeyboardInterrupt:  # Ctrl-C: every file is whole (atomic writes); say how to go on
+        if trainer.main:
+            saved = latest_checkpoint(trainer.out_dir)
+            log.warning("interrupted at step %d; %s", trainer.step,
+                        f"`c4d train --resume train.out_dir={trainer.out_dir}` continues from "
+                        f"{saved.name}" if saved else "no checkpoint yet: the same command starts over")
+        raise
     except OSError as exc:  # TensorBoard's event file on a full disk (its own thread writes it)
         if exc.errno not in DISK_ERRNOS:
             raise

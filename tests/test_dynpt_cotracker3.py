@@ -4,7 +4,10 @@ tests/fixtures/cotracker3_golden.pt holds, for a reduced-size CoTracker3 offline
 built from facebookresearch/co-tracker's classes with random weights (heads scaled up so tracks
 move), the state dicts, an 18-frame 48x64 video, 12 queries at frames 0..17 and CoTracker3's
 tracks, visibility and confidence (3 iterations; online: windows of 8 moved by 4, the last one
-padded). Made by a scratch script outside the repository.
+padded), and under `offline_predictor` what CoTracker3's own `CoTrackerPredictor` returns for
+the offline model on that video and those queries (tracks and visible flags, 6 iterations, at
+the video's size, with and without backward tracking). Made by a scratch script outside the
+repository.
 """
 
 from pathlib import Path
@@ -54,6 +57,34 @@ def test_outputs_equal_cotracker3(golden, kind, tmp_path):
     vis, conf = torch.sigmoid(out.vis_logits[-1][0]), torch.sigmoid(out.conf_logits[-1][0])
     assert (vis - g["vis"]).abs()[valid].max() < 1e-4
     assert (conf - g["conf"]).abs()[valid].max() < 1e-4
+
+
+@pytest.mark.parametrize("backward", [False, True])
+def test_the_tracker_gives_cotracker3s_offline_predictor_flags(golden, backward):
+    """DynPT's `Tracker` with CoTracker3's offline weights and config (model/cotracker3-offline:
+    visible = sigmoid(vis) > 0.9, no confidence term) returns the visible flags and tracks of
+    CoTracker3's `CoTrackerPredictor`, backward tracking included; the online rule on the same
+    probabilities (vis x conf > 0.6) would not."""
+    from dynpt.inference import Tracker, visibility
+
+    g, expected = golden["offline"], golden["offline_predictor"]["backward" if backward else "forward"]
+    cfg = {**cw.config_from_state(g["state"], _base(), "cotracker3_offline"), "resolution": None}
+    assert (cfg["visibility_rule"], cfg["visibility_threshold"]) == ("vis", 0.9)
+    model = build_model(cfg)
+    model.load_state_dict(cw.map_state(g["state"], cfg, model.state_dict())[0], strict=False)
+    video = golden["video"][0].permute(0, 2, 3, 1).numpy()  # (T,H,W,3) uint8
+    queries = golden["queries"][0].numpy()  # (N,3) t, x, y at frames 0..17
+    result = Tracker(model, "cpu").track(video, queries, backward=backward, support_grid=6)
+    assert (result.visible == expected["visible"].numpy()).all()
+    assert 0.3 < result.visible.mean() < 0.8  # both kinds of flag occur
+    err = abs(result.tracks - expected["tracks"].numpy()).max()
+    assert err < 1e-3, err
+    with torch.no_grad():  # the online rule on the same network's probabilities disagrees
+        out = model.eval()(golden["video"], golden["queries"], iters=6)
+    online = visibility(torch.sigmoid(out.vis_logits[-1][0]), torch.sigmoid(out.conf_logits[-1][0]),
+                        "vis_conf", 0.6)
+    if not backward:
+        assert (online.numpy() != expected["visible"].numpy()).any()
 
 
 def test_plain_rename_of_the_correlation_mlp_is_wrong(golden, tmp_path):
@@ -126,7 +157,10 @@ def test_refusals(golden, tmp_path):
         cw.load_into(small, extra)
     partial = tmp_path / "partial.pth"
     torch.save({k: v for k, v in state.items() if not k.startswith("fnet.conv3")}, partial)
-    with pytest.raises(UserError, match="no CoTracker3 tensor for DynPT's cnn.conv3"):
+    with pytest.raises(UserError, match="no tensor 'fnet.conv3.weight'"):
+        cw.load_into(small, partial)
+    torch.save({k: v for k, v in state.items() if not k.startswith("fnet.layer2.1.")}, partial)
+    with pytest.raises(UserError, match="no CoTracker3 tensor for DynPT's cnn.layer2.1"):
         cw.load_into(small, partial)
     other = tmp_path / "other.pth"
     torch.save({"weights": torch.zeros(1)}, other)
@@ -184,6 +218,54 @@ def test_finetune_recipes_train_their_parts(preset, trained):
     for name, p in model.named_parameters():
         part = next((k for k, pre in PARTS.items() if name.startswith(pre)), "encoder_3d")
         assert p.requires_grad == (part in trained), name
+
+
+def _cotracker2_like(state: dict) -> dict:
+    """CoTracker2's layout from CoTracker3's tensors: no correlation MLP or visibility head, but
+    a group norm, a track-feature updater and a visibility predictor (co-tracker's CoTracker2)."""
+    kept = {k: v for k, v in state.items()
+            if not k.startswith(("corr_mlp.", "updateformer.vis_conf_head."))}
+    return {**kept, "norm.weight": torch.ones(16), "norm.bias": torch.zeros(16),
+            "track_feat_updater.0.weight": torch.zeros(16, 48), "vis_predictor.0.weight": torch.zeros(1, 16)}
+
+
+@pytest.mark.parametrize("fault,words", [
+    ("no time_emb", ("no tensor 'time_emb'",)),
+    ("no corr_mlp.fc1.weight", ("no tensor 'corr_mlp.fc1.weight'",)),
+    ("no fnet.layer1.0.conv1.weight", ("no tensor 'fnet.layer1.0.conv1.weight'",)),
+    ("no updateformer.virual_tracks", ("no tensor 'updateformer.virual_tracks'",)),
+    ("cotracker2", ("is not part of CoTracker3's network", "CoTracker2?")),
+    ("narrow input projection", ("updateformer.input_transform.weight has 109 token inputs",
+                                 "2 + levels x 16")),
+    ("narrow time embedding", ("time_emb is 109 wide", "input_transform.weight takes 118")),
+])
+def test_a_file_that_is_not_a_whole_cotracker3_is_one_line_naming_the_tensor(
+        golden, tmp_path, capsys, fault, words):
+    """`load_tracker("cotracker3:PATH")` and `c4d track --ckpt cotracker3:PATH` validate the file
+    before reading any size from it; no KeyError, and the tensor at fault is the one named."""
+    from c4d.cli import main
+    from c4d_core.video import write_video
+    from dynpt.inference import load_tracker
+    from tests.test_faults import assert_one_line_error
+
+    state = dict(golden["offline"]["state"])
+    if fault.startswith("no "):
+        del state[fault[3:]]
+    elif fault == "cotracker2":
+        state = _cotracker2_like(state)
+    elif fault == "narrow input projection":
+        state["updateformer.input_transform.weight"] = state["updateformer.input_transform.weight"][:, :109]
+    else:
+        state["time_emb"] = state["time_emb"][..., :109]
+    path = tmp_path / "ct.pth"
+    torch.save(state, path)
+    with pytest.raises(UserError) as caught:
+        load_tracker(f"cotracker3:{path}")
+    assert str(path) in str(caught.value) and all(w in str(caught.value) for w in words), caught.value
+    video = write_video(tmp_path / "v.avi", torch.zeros(4, 32, 32, 3, dtype=torch.uint8).numpy(), 12)
+    code = main(["track", str(video), "--ckpt", f"cotracker3:{path}", "--out", str(tmp_path / "o")])
+    assert_one_line_error(code, capsys.readouterr().err, str(path), *words)
+    assert not (tmp_path / "o").exists()
 
 
 def test_fusion_starts_as_identity(golden, tmp_path):

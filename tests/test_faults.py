@@ -449,6 +449,53 @@ def test_training_killed_then_resumed_is_bit_identical(tmp_path, uninterrupted, 
     assert_same_run(uninterrupted, out)
 
 
+def test_training_with_loader_workers_ctrl_c_and_kill_leave_no_orphans(tmp_path):
+    """Ctrl-C to a run with two DataLoader workers: exit 130 with how to go on, the workers gone,
+    and --resume continues from the newest checkpoint; kill -9 of the trainer alone: its workers
+    notice (PyTorch's parent watchdog) and exit."""
+    shards = synthetic_shards(12, 3)
+
+    def start(out: Path, *extra: str) -> tuple[subprocess.Popen, Path]:
+        err = out.with_suffix(".err")
+        with open(err, "w") as fh:  # a file, not a pipe: the per-step log must never block it
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "c4d", "train", *TRAIN, f"data.sources=[{shards}]",
+                 f"train.out_dir={out}", "train.ckpt_every=2", "train.steps=100000",
+                 "data.num_workers=2", *extra], env=ENV, cwd=ROOT, stdout=subprocess.DEVNULL,
+                stderr=fh, preexec_fn=_interruptible)
+        return proc, err
+
+    def running(proc: subprocess.Popen, out: Path) -> list[int]:
+        wait_for(lambda: proc.poll() is not None or (
+            len(list((out / "checkpoints").glob("step_*.pt"))) >= 2 and len(children(proc.pid)) >= 2),
+            240, "two checkpoints with the loader workers running")
+        assert proc.poll() is None
+        return children(proc.pid)
+
+    out = tmp_path / "interrupted"
+    proc, err = start(out)
+    workers = running(proc, out)
+    proc.send_signal(signal.SIGINT)  # the trainer alone, not its process group
+    assert proc.wait(timeout=120) == 130, err.read_text()[-2000:]
+    text = err.read_text()
+    assert "Traceback" not in text and "c4d: interrupted" in text, text[-2000:]
+    assert f"`c4d train --resume train.out_dir={out}` continues from step_" in text, text[-2000:]
+    wait_for(lambda: not any(alive(pid) for pid in workers), 30, "the workers to exit")
+    done = log_lines(out)[-1]["step"]
+    assert main(["train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={out}",
+                 "train.ckpt_every=2", f"train.steps={done + 2}", "data.num_workers=2",
+                 "--resume"]) == 0
+    steps = [line["step"] for line in log_lines(out)]
+    assert steps == list(range(1, done + 3))  # no step twice, none lost
+
+    out = tmp_path / "killed"
+    proc, err = start(out)
+    workers = running(proc, out)
+    proc.kill()
+    proc.wait()
+    wait_for(lambda: not any(alive(pid) for pid in workers), 30, "the orphaned workers to exit")
+
+
 def test_a_size_limit_during_training_leaves_whole_lines(tmp_path, capsys):
     """RLIMIT_FSIZE (EFBIG, SIGXFSZ ignored) cuts writes like a full disk, for this process only."""
     shards = synthetic_shards(12, 3)

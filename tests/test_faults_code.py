@@ -128,6 +128,28 @@ def test_a_dust3r_file_with_other_objects_is_refused_with_how_to_convert_a_trust
     torch.testing.assert_close(ckpt.state_dict["w"], torch.ones(3))
 
 
+def test_a_dust3r_file_with_numpy_scalars_reads_under_numpy_1_and_2_names(tmp_path):
+    """croco's save_model can store numpy scalars (a best_so_far float, numpy-string names)."""
+    import zipfile
+
+    from dynpt.dust3r.checkpoint import read_checkpoint
+
+    path = tmp_path / "official.pth"
+    torch.save({"model": {np.str_("module.w"): torch.ones(3)}, "args": argparse.Namespace(
+        model="Net(a=1)"), "best_so_far": np.float64(0.25), "epoch": np.int64(7)}, path)
+    old = tmp_path / "numpy1.pth"  # the same file as numpy 1.x writes it: numpy.core, not _core
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(old, "w") as dst:
+        for item in src.infolist():
+            data = src.read(item)
+            if item.filename.endswith("data.pkl"):
+                assert b"numpy._core.multiarray" in data
+                data = data.replace(b"numpy._core.multiarray", b"numpy.core.multiarray")
+            dst.writestr(item, data)
+    for file in (path, old):
+        ckpt = read_checkpoint(file)
+        assert ckpt.constructor == "Net" and list(ckpt.state_dict) == ["w"]
+
+
 def test_a_tapvid_pickle_with_a_class_is_refused_and_a_real_one_reads(tmp_path, marker):
     from dynpt.tapvid_data import read_tapvid
 

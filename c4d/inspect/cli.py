@@ -13,6 +13,7 @@ from pathlib import Path
 
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
+from c4d_core.files import remove_empty_folders
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +118,22 @@ def _run_check(args, cfg) -> int:
 
 
 def run(args) -> int:
+    """`c4d inspect`: a failure leaves no `--out` folder behind that this run created empty."""
+    created = None  # the outermost folder of --out that does not exist yet
+    if args.out is not None:
+        for folder in (Path(args.out), *Path(args.out).parents):
+            if folder.exists():
+                break
+            created = folder
+    try:
+        return _run(args)
+    except BaseException:
+        if created is not None:
+            remove_empty_folders(created)
+        raise
+
+
+def _run(args) -> int:
     from c4d.inspect.recon_report import is_reconstruction
 
     cfg = load_inspect_config(args)

@@ -22,16 +22,9 @@ from c4d_core.files import make_folder, write_json
 from c4d_core.video import write_image, write_video
 from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
 from c4d_pipeline.eval_recon import scene_frame_indices
-from c4d_pipeline.outputs import Reconstruction, read_reconstruction
+from c4d_pipeline.outputs import Reconstruction, is_reconstruction, read_reconstruction  # noqa: F401
 
-MARKER_FILES = ("poses_tum.txt", "pointmaps.npz", "report.json")  # any one marks a reconstruction
 CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
-
-
-def is_reconstruction(path: str | Path) -> bool:
-    """True if `path` is a directory that looks like the output of `c4d run`."""
-    path = Path(path)
-    return path.is_dir() and any((path / name).is_file() for name in MARKER_FILES)
 
 
 # --------------------------------------------------------------------------------------------

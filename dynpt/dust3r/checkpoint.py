@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from c4d_core.errors import UserError
@@ -96,8 +97,17 @@ def parse_constructor(text: str) -> tuple[str, dict[str, Any]]:
     return call.func.id, kwargs
 
 
-# The globals an official DUSt3R / MASt3R / MonST3R file needs: its training arguments.
-ALLOWED_GLOBALS = (argparse.Namespace,)
+# The numpy dtype classes of plain values (numbers, booleans, text); not object or void.
+_PLAIN_DTYPES = tuple(type(np.dtype(code)) for code in "?bhilqBHILQefdgFDGUS")
+
+# The globals an official DUSt3R / MASt3R / MonST3R file needs: its training arguments, and the
+# numpy scalars croco's `save_model` may store beside them (a `best_so_far` float, numpy-string
+# parameter names): `numpy.core.multiarray.scalar` builds one from its dtype and raw bytes and
+# calls nothing else.
+_NUMPY_SCALAR = np.float64(0).__reduce__()[0]  # numpy.(_)core.multiarray.scalar
+ALLOWED_GLOBALS = (argparse.Namespace, np.dtype, *_PLAIN_DTYPES,
+                   (_NUMPY_SCALAR, "numpy.core.multiarray.scalar"),  # as numpy 1.x names it
+                   (_NUMPY_SCALAR, "numpy._core.multiarray.scalar"))  # and 2.x
 
 # How to turn a trusted file with other Python objects into one this loader reads: its weights and
 # its arguments as a plain dict (`args.model` is read from a dict as from a Namespace).
