@@ -21,6 +21,8 @@ from c4d_core.system import configure_threads, prepare_openmp, set_thread_overri
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "datagen": ("datagen.cli", "generate MOVi-style synthetic videos with exact labels as shards"),
     "inspect": ("c4d.inspect.cli", "report, pictures and validation of shard sets and reconstructions"),
+    "view": ("c4d.view.cli", "the 4D view of a reconstruction or a generated scene in the browser "
+                             "(one offline HTML page: serve, --save or --screenshot)"),
     "pretrain-pointmaps": ("c4d_pipeline.cli_pretrain",
                            "train a small DUSt3R-shaped pointmap network (DynPT's 3D-aware encoder)"),
     "train": ("dynpt.cli_train", "train the dynamic-aware point tracker (DynPT) on shards"),

@@ -1,0 +1,269 @@
+// c4d view: the 4D viewer (a reconstruction or a generated scene over time), three.js.
+// Data: the JSON header (#c4d-header) and the base64 payload (#c4d-payload) written by
+// c4d/view/scene_data.py; coordinates are world minus header.centre, OpenCV camera axes.
+// When drawn, <html data-c4d-state> becomes "ready" ("error" on failure) and window.c4dView
+// exposes stats (what is drawn now), setFrame(t), play() and pause().
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+
+const root = document.documentElement;
+const COLORS = { moving: 0xe53935, static: 0x2f7fff, camera: 0xd0d0d0, current: 0xffd54f,
+                 truth: 0x43d17a, background: 0x15181d };
+
+function fail(error) {
+  root.dataset.c4dState = 'error';
+  document.title = 'c4d view: error: ' + error.message;
+  document.getElementById('status').textContent = 'error: ' + error.message;
+  console.error(error);
+}
+
+function decodeBase64(text) {
+  if (Uint8Array.fromBase64) return Uint8Array.fromBase64(text.trim());
+  const raw = atob(text.trim());
+  const bytes = new Uint8Array(raw.length);
+  for (let i = 0; i < raw.length; i++) bytes[i] = raw.charCodeAt(i);
+  return bytes;
+}
+
+function typedArrays(header, bytes) {
+  const types = { float16: Uint16Array, uint8: Uint8Array, float32: Float32Array, uint16: Uint16Array };
+  const out = {};
+  for (const [name, spec] of Object.entries(header.arrays)) {
+    out[name] = new types[spec.type](bytes.buffer, bytes.byteOffset + spec.offset, spec.length);
+  }
+  return out;
+}
+
+// Line segments of camera frustums (apex to the image corners at `depth`, and the image rim).
+function frustumPositions(pose, k, size, depth) {
+  const [fx, fy, cx, cy] = k, [h, w] = size;
+  const corners = [[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]].map(([u, v]) =>
+    [(u - cx) / fx * depth, (v - cy) / fy * depth, depth]);
+  const world = (p) => [0, 1, 2].map(r => pose[4 * r] * p[0] + pose[4 * r + 1] * p[1] + pose[4 * r + 2] * p[2] + pose[4 * r + 3]);
+  const apex = world([0, 0, 0]), rim = corners.map(world), out = [];
+  for (let i = 0; i < 4; i++) out.push(...apex, ...rim[i], ...rim[i], ...rim[(i + 1) % 4]);
+  return new Float32Array(out);
+}
+
+function discTexture() {
+  const canvas = document.createElement('canvas');
+  canvas.width = canvas.height = 64;
+  const context = canvas.getContext('2d');
+  context.fillStyle = '#fff';
+  context.beginPath();
+  context.arc(32, 32, 30, 0, 2 * Math.PI);
+  context.fill();
+  return new THREE.CanvasTexture(canvas);
+}
+
+function cameraGroup(cameras, size, depth, color) {
+  const group = new THREE.Group();
+  const material = new THREE.LineBasicMaterial({ color });
+  cameras.cam_to_world.forEach((pose, t) => {
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute('position', new THREE.BufferAttribute(frustumPositions(pose, cameras.intrinsics[t], size, depth), 3));
+    const frustum = new THREE.LineSegments(geometry, material);
+    frustum.frustumCulled = false;
+    group.add(frustum);
+  });
+  const path = new THREE.BufferGeometry();
+  path.setAttribute('position', new THREE.BufferAttribute(
+    new Float32Array(cameras.cam_to_world.flatMap(p => [p[3], p[7], p[11]])), 3));
+  const line = new THREE.Line(path, material);
+  line.frustumCulled = false;
+  group.add(line);
+  return group;
+}
+
+function main() {
+  const header = JSON.parse(document.getElementById('c4d-header').textContent);
+  const arrays = typedArrays(header, decodeBase64(document.getElementById('c4d-payload').textContent));
+  const T = header.frames;
+  document.getElementById('title').textContent = header.title;
+  const notes = document.getElementById('notes');
+  for (const text of header.notes) {
+    const line = document.createElement('div');
+    line.className = 'note';
+    line.textContent = text;
+    notes.appendChild(line);
+  }
+
+  THREE.ColorManagement.enabled = false; // frame colours pass through as they are
+  const container = document.getElementById('view');
+  const renderer = new THREE.WebGLRenderer({ antialias: true });
+  renderer.outputColorSpace = THREE.LinearSRGBColorSpace;
+  renderer.setPixelRatio(window.devicePixelRatio);
+  renderer.setSize(container.clientWidth, container.clientHeight);
+  container.appendChild(renderer.domElement);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(COLORS.background);
+
+  // Points: all frames in one pair of attributes, each frame a draw range (static, then dynamic).
+  const position = new THREE.Float16BufferAttribute(arrays.positions, 3);
+  const color = new THREE.Uint8BufferAttribute(arrays.colors, 3, true);
+  const camera = new THREE.PerspectiveCamera(50, container.clientWidth / container.clientHeight, 1e-3, 1e5);
+  // three.js scales a point by (canvas height / 2) / depth; a disc 1.3 pixel pitches wide.
+  const worldSize = 1.3 * header.point_size / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
+  const disc = discTexture();
+  const staticMaterial = new THREE.PointsMaterial({ size: worldSize, vertexColors: true, map: disc, alphaTest: 0.5 });
+  const dynamicMaterial = new THREE.PointsMaterial({ size: worldSize, color: COLORS.moving, map: disc, alphaTest: 0.5 });
+  const cloud = new THREE.Group();
+  const parts = [staticMaterial, dynamicMaterial].map(material => {
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute('position', position);
+    geometry.setAttribute('color', color);
+    const points = new THREE.Points(geometry, material);
+    points.frustumCulled = false;
+    cloud.add(points);
+    return points;
+  });
+  scene.add(cloud);
+
+  const size = header.image_size, depth = header.frustum_depth;
+  const cameras = cameraGroup(header.cameras, size, depth, COLORS.camera);
+  const truth = header.gt_cameras ? cameraGroup(header.gt_cameras, size, depth, COLORS.truth) : null;
+  scene.add(cameras);
+  if (truth) scene.add(truth);
+  const current = new THREE.LineSegments(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: COLORS.current }));
+  current.frustumCulled = false;
+  scene.add(current);
+
+  let tracks = null;
+  if (header.tracks) {
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute('position', new THREE.Float16BufferAttribute(arrays.track_segments, 3));
+    const moving = arrays.track_moving, rgb = new Uint8Array(moving.length * 6);
+    const hot = new THREE.Color(COLORS.moving), cold = new THREE.Color(COLORS.static);
+    moving.forEach((m, i) => {
+      const c = m ? hot : cold;
+      for (let end = 0; end < 2; end++) rgb.set([c.r * 255, c.g * 255, c.b * 255], 6 * i + 3 * end);
+    });
+    geometry.setAttribute('color', new THREE.Uint8BufferAttribute(rgb, 3, true));
+    tracks = new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({ vertexColors: true }));
+    tracks.frustumCulled = false;
+    scene.add(tracks);
+  }
+
+  // The virtual camera: behind and above the first camera, looking at the centre; up is the
+  // cameras' mean up direction (OpenCV's y axis points down).
+  const poses = header.cameras.cam_to_world;
+  const up = new THREE.Vector3(...[1, 5, 9].map(i => -poses.reduce((s, p) => s + p[i], 0))).normalize();
+  const first = new THREE.Vector3(poses[0][3], poses[0][7], poses[0][11]);
+  const back = first.clone().multiplyScalar(1.6);
+  camera.up.copy(up);
+  camera.position.copy(back.add(up.clone().multiplyScalar(0.6 * first.length() + depth)));
+  const controls = new OrbitControls(camera, renderer.domElement);
+  controls.target.set(0, 0, 0);
+  controls.update();
+
+  const slider = document.getElementById('frame'), label = document.getElementById('frame-label');
+  const status = document.getElementById('status'), playButton = document.getElementById('play');
+  slider.max = String(T - 1);
+  const show = { points: true, movingRed: header.has_dynamic, cameras: true, truth: !!truth, tracks: !!tracks };
+  const stats = {};
+  let frame = 0, timer = null;
+
+  function render() { renderer.render(scene, camera); }
+
+  function update() {
+    const p = header.points, start = p.start[frame], ns = p.static[frame], nd = p.dynamic[frame];
+    parts[0].geometry.setDrawRange(start, ns);
+    parts[1].geometry.setDrawRange(start + ns, nd);
+    dynamicMaterial.vertexColors = !show.movingRed;
+    dynamicMaterial.color.set(show.movingRed ? COLORS.moving : 0xffffff);
+    dynamicMaterial.needsUpdate = true;
+    cloud.visible = show.points;
+    cameras.visible = show.cameras;
+    if (truth) truth.visible = show.truth;
+    current.visible = show.cameras;
+    current.geometry.setAttribute('position', new THREE.BufferAttribute(
+      frustumPositions(poses[frame], header.cameras.intrinsics[frame], size, 1.3 * depth), 3));
+    const segments = tracks ? header.tracks.until[frame] : 0;
+    if (tracks) {
+      tracks.geometry.setDrawRange(0, 2 * segments);
+      tracks.visible = show.tracks;
+    }
+    Object.assign(stats, {
+      frame, frames: T,
+      points: show.points ? ns + nd : 0,
+      staticPoints: show.points ? ns : 0,
+      dynamicPoints: show.points ? nd : 0,
+      cameras: show.cameras ? header.cameras.cam_to_world.length : 0,
+      gtCameras: truth && show.truth ? header.gt_cameras.cam_to_world.length : 0,
+      trackSegments: tracks && show.tracks ? segments : 0,
+      tracks: header.tracks ? header.tracks.count : 0,
+    });
+    const time = header.timestamps ? `, t = ${header.timestamps[frame].toFixed(2)}` : '';
+    label.textContent = `frame ${frame + 1} / ${T}${time}`;
+    status.textContent = `${ns + nd} points (${nd} dynamic), ${stats.cameras} cameras` +
+      (truth ? `, ${header.gt_cameras.cam_to_world.length} ground truth` : '') +
+      (tracks ? `, ${segments} track segments of ${header.tracks.count} tracks` : '');
+    render();
+  }
+
+  function setFrame(t) {
+    frame = Math.max(0, Math.min(T - 1, Math.round(t)));
+    slider.value = String(frame);
+    update();
+    return frame;
+  }
+  function pause() {
+    clearInterval(timer);
+    timer = null;
+    playButton.textContent = 'Play';
+  }
+  function play() {
+    if (timer) return;
+    playButton.textContent = 'Pause';
+    timer = setInterval(() => setFrame((frame + 1) % T), 1000 / header.fps);
+  }
+
+  const toggles = document.getElementById('toggles');
+  const keyed = { movingRed: COLORS.moving, truth: COLORS.truth, tracks: COLORS.static };
+  for (const [key, text, available] of [['points', 'points', true], ['movingRed', 'dynamic in red', header.has_dynamic],
+                                        ['cameras', 'cameras', true], ['truth', 'ground truth', !!truth],
+                                        ['tracks', '3D tracks', !!tracks]]) {
+    if (!available) continue;
+    const box = document.createElement('input');
+    box.type = 'checkbox';
+    box.checked = show[key];
+    box.id = 'show-' + key;
+    box.addEventListener('change', () => { show[key] = box.checked; update(); });
+    const tag = document.createElement('label');
+    tag.htmlFor = box.id;
+    if (keyed[key] !== undefined) {
+      const swatch = document.createElement('span');
+      swatch.className = 'key';
+      swatch.style.background = '#' + keyed[key].toString(16).padStart(6, '0');
+      tag.appendChild(swatch);
+    }
+    tag.appendChild(document.createTextNode(text));
+    toggles.append(box, tag);
+  }
+  slider.addEventListener('input', () => { pause(); setFrame(Number(slider.value)); });
+  playButton.addEventListener('click', () => (timer ? pause() : play()));
+  window.addEventListener('keydown', (event) => {
+    if (event.target instanceof HTMLInputElement && event.target.type === 'range') return;
+    if (event.key === ' ') { event.preventDefault(); timer ? pause() : play(); }
+    if (event.key === 'ArrowRight') { pause(); setFrame((frame + 1) % T); }
+    if (event.key === 'ArrowLeft') { pause(); setFrame((frame + T - 1) % T); }
+  });
+  controls.addEventListener('change', render);
+  window.addEventListener('resize', () => {
+    camera.aspect = container.clientWidth / container.clientHeight;
+    camera.updateProjectionMatrix();
+    renderer.setSize(container.clientWidth, container.clientHeight);
+    render();
+  });
+
+  window.c4dView = { stats, setFrame, play, pause, header };
+  setFrame(0);
+  root.dataset.c4dState = 'ready';
+  document.title = header.title;
+}
+
+try {
+  main();
+} catch (error) {
+  fail(error);
+}

@@ -1,0 +1,185 @@
+"""`c4d view SOURCE`: the 4D view of a reconstruction or of a generated scene, in the browser.
+
+SOURCE is the OUT folder of `c4d run` / `c4d demo` (its point clouds, cameras, motion masks and
+3D tracks; `--gt DATA --scene-index I` draws that scene's ground-truth cameras beside them,
+Sim(3)-aligned) or a shard set of `c4d datagen` (`--scene I` from its ground truth). The page is
+one self-contained HTML file (c4d.view.page): `--save FILE` writes it, `--screenshot PNG` draws
+it in headless Chromium, and without either it is served on 127.0.0.1:`--port` and opened in
+the default browser (`--no-browser`: only print the address) until Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import logging
+import webbrowser
+from functools import partial
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+from c4d.view import scene_data
+from c4d_core.errors import UserError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 8765
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _size(text: str) -> tuple[int, int]:
+    width, sep, height = text.partition("x")
+    if not sep or not width.isdigit() or not height.isdigit() or min(int(width), int(height)) < 16:
+        raise argparse.ArgumentTypeError(f"give WIDTHxHEIGHT in pixels (at least 16x16), got {text!r}")
+    return int(width), int(height)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("source", metavar="SOURCE",
+                        help="a reconstruction (the OUT folder of `c4d run` or `c4d demo`) or a "
+                             "shard set of `c4d datagen` (a folder of .tar shards, a .tar, a glob)")
+    parser.add_argument("--scene", type=int, default=0, metavar="I",
+                        help="shard sets: the scene to show (0-based, reading order; default 0)")
+    parser.add_argument("--gt", metavar="DATA",
+                        help="reconstructions: the shard set holding the video's ground truth, "
+                             "drawn beside it (the reconstruction Sim(3)-aligned onto it)")
+    parser.add_argument("--scene-index", type=int, default=0, metavar="I",
+                        help="reconstructions: which scene of --gt (0-based, reading order)")
+    parser.add_argument("--stride", type=_positive, default=scene_data.DEFAULT_STRIDE, metavar="S",
+                        help="draw every S-th pixel of every S-th row (default "
+                             f"{scene_data.DEFAULT_STRIDE})")
+    parser.add_argument("--max-points", type=_positive, default=scene_data.DEFAULT_MAX_POINTS,
+                        metavar="N", help="at most N points per frame, evenly among those kept "
+                                          f"(default {scene_data.DEFAULT_MAX_POINTS})")
+    parser.add_argument("--min-confidence", type=float, default=scene_data.DEFAULT_MIN_CONFIDENCE,
+                        metavar="C", help="reconstructions: draw points of confidence >= C "
+                                          f"(default {scene_data.DEFAULT_MIN_CONFIDENCE:g}: all)")
+    parser.add_argument("--max-tracks", type=int, default=scene_data.DEFAULT_MAX_TRACKS, metavar="N",
+                        help=f"at most N 3D tracks (default {scene_data.DEFAULT_MAX_TRACKS}; 0: none)")
+    parser.add_argument("--save", type=Path, metavar="FILE.html",
+                        help="write the page to this file (it opens offline) instead of serving it")
+    parser.add_argument("--screenshot", type=Path, metavar="FILE.png",
+                        help="draw the page in headless Chromium and write a PNG (needs Chromium)")
+    parser.add_argument("--frame", type=int, metavar="T",
+                        help="--screenshot: the frame shown (0-based; default the first)")
+    parser.add_argument("--size", type=_size, default=(1280, 800), metavar="WxH",
+                        help="--screenshot: the picture's size in pixels (default 1280x800)")
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT,
+                        help=f"serve on 127.0.0.1:PORT (default {DEFAULT_PORT}; 0: any free port)")
+    parser.add_argument("--no-browser", action="store_true",
+                        help="serve without opening a browser; only print the address")
+
+
+def load_view(args) -> scene_data.ViewScene:
+    """The `ViewScene` of SOURCE: a reconstruction, or a scene of a shard set."""
+    from c4d_pipeline.outputs import is_reconstruction
+
+    if is_reconstruction(args.source):
+        gt, gt_name = None, ""
+        if args.gt:
+            from c4d_pipeline.eval_recon import pick_scene
+
+            gt = pick_scene(args.gt, args.scene_index)
+            gt_name = f"{args.gt} scene {args.scene_index}"
+        return scene_data.from_reconstruction(args.source, args.min_confidence, gt, gt_name)
+    if args.gt:
+        raise UserError(f"--gt is for reconstructions, and {args.source} is not one (no "
+                        "poses_tum.txt, pointmaps.npz or report.json)")
+    if Path(args.source).is_dir() and not any(Path(args.source).glob("*.tar")):
+        raise UserError(f"{args.source} is neither a reconstruction (no poses_tum.txt, "
+                        "pointmaps.npz or report.json) nor a shard set (no .tar shards); give the "
+                        "--out folder of `c4d run` / `c4d demo` or of `c4d datagen`")
+    from c4d_pipeline.eval_recon import pick_scene
+
+    if args.scene < 0:
+        raise UserError(f"--scene must be >= 0, got {args.scene}")
+    scene = pick_scene(args.source, args.scene)
+    return scene_data.from_scene(scene, f"{args.source} scene {args.scene}")
+
+
+class _PageHandler(BaseHTTPRequestHandler):
+    """Answers GET / (and /index.html) with the page; anything else is 404."""
+
+    def __init__(self, *args, page: bytes, **kwargs):
+        self.page = page
+        super().__init__(*args, **kwargs)
+
+    def do_GET(self):  # noqa: N802 -- the name http.server calls
+        if self.path.split("?")[0] not in ("/", "/index.html"):
+            self.send_error(404)
+            return
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html; charset=utf-8")
+        self.send_header("Content-Length", str(len(self.page)))
+        self.end_headers()
+        self.wfile.write(self.page)
+
+    def log_message(self, format, *args):  # noqa: A002 -- http.server's signature
+        log.debug("%s %s", self.address_string(), format % args)
+
+
+def serve(page: bytes, port: int, open_browser: bool) -> None:
+    """Serve `page` on 127.0.0.1:`port` until Ctrl-C; a port in use is one `UserError`."""
+    if not 0 <= port <= 65535:
+        raise UserError(f"--port must be 0..65535, got {port}")
+    try:
+        server = ThreadingHTTPServer(("127.0.0.1", port), partial(_PageHandler, page=page))
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise UserError(f"port {port} is in use on 127.0.0.1; choose another with --port "
+                            "(--port 0 picks a free one)") from None
+        raise UserError(f"cannot serve on 127.0.0.1:{port}: {exc.strerror or exc}") from None
+    url = f"http://127.0.0.1:{server.server_address[1]}/"
+    print(f"serving the view on {url} (Ctrl-C to stop)", flush=True)
+    if open_browser:
+        webbrowser.open(url)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        print("stopped", flush=True)
+    finally:
+        server.server_close()
+
+
+def run(args) -> int:
+    from c4d.view.page import build_page
+
+    if args.max_tracks < 0:
+        raise UserError(f"--max-tracks must be >= 0, got {args.max_tracks}")
+    if args.screenshot is not None:
+        from c4d.view.browser import find_browser
+
+        find_browser()  # no browser: said before the scene is read
+    view = load_view(args)
+    if args.frame is not None and not 0 <= args.frame < view.num_frames:
+        raise UserError(f"--frame must be 0..{view.num_frames - 1}, got {args.frame}")
+    if args.max_tracks == 0:
+        view.tracks = None
+    payload = scene_data.encode(view, args.stride, args.max_points, args.max_tracks)
+    page = build_page(payload).encode("utf-8")
+    points = sum(payload.header["points"]["static"]) + sum(payload.header["points"]["dynamic"])
+    log.info("%d frames, %d points, page of %.1f MB", view.num_frames, points, len(page) / 1e6)
+    if args.save is None and args.screenshot is None:
+        serve(page, args.port, not args.no_browser)
+        return 0
+    from c4d_core.files import write_bytes
+
+    if args.save is not None:
+        write_bytes(args.save, page)
+        log.info("wrote %s", args.save)
+    if args.screenshot is not None:
+        import tempfile
+
+        from c4d.view.browser import screenshot_file
+
+        with tempfile.TemporaryDirectory(prefix="c4d-view-") as folder:
+            html = args.save or write_bytes(Path(folder) / "view.html", page)
+            screenshot_file(html, args.screenshot, args.frame, *args.size)
+        log.info("wrote %s", args.screenshot)
+    return 0
