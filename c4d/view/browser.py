@@ -148,7 +148,7 @@ class Browser:
         target = self.send("Target.createTarget", {"url": "about:blank"})["targetId"]
         session = self.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
         page = Page(self, session)
-        for domain in ("Page", "Runtime", "Log"):
+        for domain in ("Page", "Runtime", "Log", "Network"):
             page.send(f"{domain}.enable")
         page.send("Emulation.setDeviceMetricsOverride", {
             "width": self.width, "height": self.height, "deviceScaleFactor": 1, "mobile": False})
@@ -157,13 +157,12 @@ class Browser:
 
 
 class Page:
-    """One tab of a `Browser`: evaluate JavaScript, wait for a condition, take screenshots, and
-    `errors()`: what the page reported as errors (console errors, uncaught exceptions, failed
-    loads)."""
+    """One tab of a `Browser`: evaluate JavaScript, wait for a condition, take screenshots, read
+    its protocol events (`events`) and what it reported as errors (`errors`)."""
 
     def __init__(self, browser: Browser, session: str):
         self.browser, self.session = browser, session
-        self._errors: list[str] = []
+        self._seen: list[dict] = []  # this tab's events read so far
 
     def send(self, method: str, params: dict | None = None) -> dict:
         return self.browser.send(method, params, self.session)
@@ -211,28 +210,29 @@ class Page:
         data = self.send("Page.captureScreenshot", {"format": "png"})["data"]
         return np.asarray(Image.open(io.BytesIO(base64.b64decode(data))).convert("RGB"))
 
-    def errors(self) -> list[str]:
-        """Every error the page reported so far: console.error, uncaught exceptions, resources
-        that failed to load (one line each)."""
+    def events(self, method: str) -> list[dict]:
+        """The parameters of every `method` event of this tab so far (e.g.
+        "Network.requestWillBeSent" once `send("Network.enable")` was called)."""
         self.evaluate("0")  # a round trip, so that events sent before it are read
-        keep = []
-        for event in self.browser.events:
-            if event.get("sessionId") != self.session:
-                keep.append(event)
-                continue
-            method, params = event["method"], event.get("params", {})
-            if method == "Runtime.consoleAPICalled" and params.get("type") in ("error", "assert"):
-                self._errors.append("console: " + " ".join(
-                    str(a.get("value", a.get("description", ""))) for a in params.get("args", [])))
-            elif method == "Runtime.exceptionThrown":
-                details = params.get("exceptionDetails", {})
-                self._errors.append("exception: " + str(
-                    details.get("exception", {}).get("description") or details.get("text")))
-            elif method == "Log.entryAdded" and params.get("entry", {}).get("level") == "error":
-                entry = params["entry"]
-                self._errors.append(f"{entry.get('source')}: {entry.get('text')} {entry.get('url', '')}".strip())
-        self.browser.events = keep
-        return list(self._errors)
+        mine = [e for e in self.browser.events if e.get("sessionId") == self.session]
+        self.browser.events = [e for e in self.browser.events if e.get("sessionId") != self.session]
+        self._seen += mine
+        return [e.get("params", {}) for e in self._seen if e["method"] == method]
+
+    def errors(self) -> list[str]:
+        """Every error the page reported so far, one line each: console.error (and failed
+        console.assert), uncaught exceptions, resources that failed to load."""
+        lines = ["console: " + " ".join(str(a.get("value", a.get("description", "")))
+                                        for a in params.get("args", []))
+                 for params in self.events("Runtime.consoleAPICalled")
+                 if params.get("type") in ("error", "assert")]
+        lines += ["exception: " + str(p.get("exceptionDetails", {}).get("exception", {}).get("description")
+                                      or p.get("exceptionDetails", {}).get("text"))
+                  for p in self.events("Runtime.exceptionThrown")]
+        lines += [f"{e['source']}: {e.get('text')} {e.get('url', '')}".strip()
+                  for e in (p["entry"] for p in self.events("Log.entryAdded"))
+                  if e.get("level") == "error"]
+        return lines
 
 
 def _high_pipe() -> tuple[int, int]:
