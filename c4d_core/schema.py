@@ -251,6 +251,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "lights.shadow_extent": number(above=0),
         "backdrop.dome_radius": number(above=0), "backdrop.floor_tile": number(above=0),
         "blur.max_shutter": number(0.0), "blur.samples_per_frame": COUNT, "blur.max_samples": COUNT,
+        "layers.normal": flag(), "layers.object_coordinates": flag(), "layers.instances": flag(),
+        "layers.events": flag(),
         "tracks.num_points": COUNT, "tracks.query_stride": COUNT, "tracks.grid_stride": COUNT,
         "tracks.max_sampled_fraction": number(high=1.0, above=0), "tracks.depth_tolerance": number(0.0),
     },

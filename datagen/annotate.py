@@ -1,4 +1,5 @@
-"""Labels computed exactly from geometry: optical flow, point tracks, visibility and mobility.
+"""Labels computed exactly from geometry: optical flow, point tracks, visibility and mobility;
+per-object boxes, image positions and velocities; collision events.
 
 Every pixel's surface point is known in 3-D (z-depth + camera), and so is the rigid pose of the
 thing it lies on (segmentation: 0 = the static backdrop, k = object k-1). Moving that point with
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c4d_core import geometry
+from datagen.scene import INSTANCE_KEYS, events_from_columns
 
 
 def segment_poses(object_to_world: np.ndarray) -> np.ndarray:
@@ -219,3 +221,78 @@ def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
         displacement=displacement.astype(np.float32),
         moving=displacement > mobility_threshold,
     )
+
+
+# Box corner order (8,3) of 0/1 = min/max per axis: x slowest, then y, then z (Kubric's order).
+BOX_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+def box_corners(boxes: np.ndarray) -> np.ndarray:
+    """(K,8,3) corners of axis-aligned boxes (K,2,3) given as (min, max) corners."""
+    return boxes[:, BOX_CORNERS, np.arange(3)]
+
+
+def segment_boxes(segmentation: np.ndarray, num_objects: int) -> tuple[np.ndarray, np.ndarray]:
+    """Visible pixels int32 (K,T) and 2-D boxes float32 (K,T,4) of segments 1..K per frame.
+
+    A box is [ymin, xmin, ymax, xmax] of the outermost pixels of the segment, as pixel edges
+    divided by (H, W, H, W): ymin = first row / H, ymax = (last row + 1) / H, so it lies in [0,1]
+    and a one-pixel object has a box of one pixel's size. NaN where the segment is not visible.
+    """
+    num_frames, height, width = segmentation.shape
+    labels = segmentation + (num_objects + 1) * np.arange(num_frames)[:, None, None]  # (T,H,W)
+    count = num_frames * (num_objects + 1)
+    pixels = np.bincount(labels.ravel(), minlength=count).reshape(num_frames, num_objects + 1)
+    extents = []
+    for axis, size in ((1, height), (2, width)):
+        index = np.arange(size).reshape((1, size, 1) if axis == 1 else (1, 1, size))
+        present = np.bincount((labels * size + index).ravel(), minlength=count * size)
+        present = present.reshape(num_frames, num_objects + 1, size) > 0  # (T,K+1,size)
+        first = np.argmax(present, axis=-1)
+        last = size - np.argmax(present[..., ::-1], axis=-1)
+        extents.append((first / size, last / size))
+    (y0, y1), (x0, x1) = extents
+    boxes = np.stack([y0, x0, y1, x1], axis=-1).astype(np.float32)  # (T,K+1,4)
+    boxes[pixels == 0] = np.nan
+    return (np.ascontiguousarray(pixels[:, 1:].T).astype(np.int32),
+            np.ascontiguousarray(boxes[:, 1:].transpose(1, 0, 2)))
+
+
+def instance_labels(segmentation, intrinsics, cam_to_world, object_to_world, boxes, velocities,
+                    angular_velocities, dynamic) -> dict[str, np.ndarray]:
+    """`Scene.instances` (keys and dtypes of `INSTANCE_KEYS`) of K objects over T frames.
+
+    segmentation (T,H,W); intrinsics (T,3,3); cam_to_world (T,4,4); object_to_world (K,T,4,4);
+    boxes (K,2,3) the (min, max) corners of each object's box in its own frame (units);
+    velocities and angular_velocities (K,T,3) world, units/s and rad/s; dynamic (K,) bool.
+    `image_position` is the projection of the object's origin (its centre of mass, Kubric's
+    object position), NaN where it lies behind the camera.
+    """
+    corners = box_corners(boxes)  # (K,8,3)
+    pixels, z = geometry.project(object_to_world[..., :3, 3], intrinsics[None], cam_to_world[None])
+    pixels[z <= 0] = np.nan
+    visible, boxes_2d = segment_boxes(segmentation, len(object_to_world))
+    values = {
+        "bbox_3d": geometry.transform_points(object_to_world[:, :, None], corners[:, None]),
+        "bbox_2d": boxes_2d, "visible_pixels": visible, "image_position": pixels,
+        "velocity": velocities, "angular_velocity": angular_velocities, "is_dynamic": dynamic,
+    }
+    return {key: np.ascontiguousarray(values[key], dtype) for key, (dtype, _) in INSTANCE_KEYS.items()}
+
+
+def collision_events(contacts: np.ndarray, steps_per_frame: int, intrinsics: np.ndarray,
+                     camera_pose_at) -> list[dict]:
+    """`Scene.events` from pybullet contacts (`datagen.simulate.CONTACT_DTYPE`, (E,)).
+
+    Each event holds the keys of `EVENT_KEYS`, its values float32-exact Python numbers and lists:
+    the two instances (object indices, -1 the floor), the frame time (step / steps_per_frame - 1,
+    a float), the normal force (N), the contact point on the second instance (world), its (x, y)
+    pixel in the camera at that time (intrinsics (3,3); camera_pose_at(times (E,)) -> (E,4,4))
+    and the contact normal on the second instance, pointing to the first (world).
+    """
+    frame = contacts["step"] / steps_per_frame - 1.0  # (E,)
+    pixels, _ = geometry.project(contacts["position"], intrinsics, camera_pose_at(frame))
+    return events_from_columns({
+        "instances": contacts["bodies"], "frame": frame, "force": contacts["force"],
+        "position": contacts["position"], "image_position": pixels,
+        "contact_normal": contacts["normal"]})

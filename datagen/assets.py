@@ -66,6 +66,11 @@ class Asset:
     hull_vertices: np.ndarray  # float64 (Vh,3) convex hull, used as collision shape
     volume: float  # convex hull volume at scale 1 (units^3)
 
+    def bounds(self, scale: float) -> np.ndarray:
+        """float64 (2,3): the (min, max) corners of the render mesh's axis-aligned box in the
+        object's own frame at `scale` (units), Kubric's `bounds` x scale."""
+        return scale * np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
+
 
 def _pybullet_data_dir() -> Path:
     import pybullet_data

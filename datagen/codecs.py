@@ -8,6 +8,11 @@ and docs/perf/datagen_io.md):
   frames stacked vertically in one PNG, which is still read).
 - `segmentation.png`: (T*H, W) 8-bit PNG (16-bit when an id exceeds 255), decoded to int32.
 - every other array: `<field>.npy.bsz`, lossless for any dtype (see `encode_array`).
+- `normal.u16.npy.bsz`, `object_coordinates.u16.npy.bsz`: float32 (T,H,W,3) quantised to uint16
+  as Kubric's PNGs are (`QUANTISED`; error at most half a step), then `.npy.bsz`.
+- `instances.npy.bsz`: the dict of per-object arrays as one structured array, one record per
+  object (`instance_dtype`); `events.npy.bsz`: the list of events as one record per event
+  (`EVENT_DTYPE`); both `.npy.bsz`, lossless.
 - `meta.json`, `objects.json`: UTF-8 JSON.
 - `checksums.json` (format 3): the CRC-32 of every other member of the sample, checked on read.
 A field that is `None` has no member and decodes to `None`.
@@ -24,6 +29,7 @@ import cv2
 import numpy as np
 
 from c4d_core.files import json_default
+from datagen.scene import EVENT_KEYS, INSTANCE_KEYS, event_columns, events_from_columns
 
 FORMAT_VERSION = 3  # 3: a `checksums.json` member; 2: rgb as raw `rgb.npy` (~50x faster than PNG)
 ZLIB_LEVEL = 1  # level 6 saves 3-7 % on float labels at half the encode speed (docs/perf)
@@ -46,9 +52,18 @@ ARRAY_FIELDS: dict[str, tuple[np.dtype, int]] = {
     "tracks_world": (np.dtype(np.float32), 3),
     "displacement": (np.dtype(np.float32), 2),
     "moving": (np.dtype(np.bool_), 2),
+    "normal": (np.dtype(np.float32), 4),
+    "object_coordinates": (np.dtype(np.float32), 4),
 }
 JSON_FIELDS = ("meta", "objects")
-SPECIAL_MEMBERS = {"rgb": "rgb.npy", "segmentation": "segmentation.png"}
+RECORD_FIELDS = ("instances", "events")  # a dict of arrays, a list of dicts: structured arrays
+# field -> (low, high): stored as uint16 q = round((v - low) / (high - low) * 65535), read back as
+# low + q / 65535 * (high - low) in float32 (Kubric's normal and object-coordinate PNGs).
+QUANTISED = {"normal": (-1.0, 1.0), "object_coordinates": (0.0, 1.0)}
+QUANTUM = 65535
+SPECIAL_MEMBERS = {"rgb": "rgb.npy", "segmentation": "segmentation.png",
+                   "normal": "normal.u16.npy.bsz", "object_coordinates": "object_coordinates.u16.npy.bsz"}
+EVENT_DTYPE = np.dtype([(key, dtype, shape) for key, (dtype, shape) in EVENT_KEYS.items()])
 FORMAT_1_RGB = "rgb.png"  # format 1's rgb member, still read
 # Fields every datagen scene has (docs/FORMAT.md): a sample without one of them is incomplete.
 REQUIRED_FIELDS = ("rgb", "intrinsics", "cam_to_world", "objects", "tracks", "occluded",
@@ -83,6 +98,12 @@ def encode_field(name: str, value: Any) -> bytes:
         return encode_segmentation(value)
     if name in JSON_FIELDS:
         return to_json_bytes(value)
+    if name in QUANTISED:
+        return encode_array(quantise(value, *QUANTISED[name]))
+    if name == "instances":
+        return encode_array(instance_records(value))
+    if name == "events":
+        return encode_array(event_records(value))
     return encode_array(value)
 
 
@@ -100,7 +121,64 @@ def decode_field(name: str, suffix: str, data: bytes, num_frames: int) -> Any:
         return decode_segmentation(data, num_frames)
     if name in JSON_FIELDS:
         return json.loads(bytes(data).decode("utf-8"))
+    if name in QUANTISED:
+        return dequantise(decode_array(data), *QUANTISED[name])
+    if name == "instances":
+        records = decode_array(data)
+        return {key: np.ascontiguousarray(records[key]) for key in INSTANCE_KEYS}
+    if name == "events":
+        return events_from_columns(decode_array(data))
     return decode_array(data)
+
+
+# --- optional layers ----------------------------------------------------------------------------
+
+
+def quantise(value: np.ndarray, low: float, high: float) -> np.ndarray:
+    """float (...) in [low, high] -> uint16 (...), the nearest of 65536 even steps (clipped)."""
+    steps = (np.asarray(value, np.float32) - np.float32(low)) * np.float32(QUANTUM / (high - low))
+    return np.clip(np.rint(steps), 0, QUANTUM).astype(np.uint16)
+
+
+def dequantise(steps: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Inverse of `quantise`: float32 (...), within half a step ((high - low) / 131070) of the
+    value quantised; quantising the result again gives the same steps."""
+    if steps.dtype != np.uint16:
+        raise ValueError(f"a quantised layer must be uint16, got {steps.dtype}")
+    return steps.astype(np.float32) * np.float32((high - low) / QUANTUM) + np.float32(low)
+
+
+def instance_dtype(num_frames: int) -> np.dtype:
+    """One object's record of `Scene.instances` over `num_frames` frames: a field per key of
+    `INSTANCE_KEYS`, of shape (T, ...) (`is_dynamic`: one value)."""
+    return np.dtype([(key, dtype) if shape is None else (key, dtype, (num_frames, *shape))
+                     for key, (dtype, shape) in INSTANCE_KEYS.items()])
+
+
+def instance_records(instances: dict[str, np.ndarray]) -> np.ndarray:
+    """`Scene.instances` (K objects) -> a structured (K,) array of `instance_dtype`; ValueError
+    if the keys, dtypes or shapes are not the contract's."""
+    if set(instances) != set(INSTANCE_KEYS):
+        raise ValueError(f"instances must have the keys {list(INSTANCE_KEYS)}, got {list(instances)}")
+    num_objects, num_frames = np.shape(instances["visible_pixels"])
+    records = np.zeros(num_objects, instance_dtype(num_frames))
+    for key, (dtype, shape) in INSTANCE_KEYS.items():
+        want = (num_objects,) if shape is None else (num_objects, num_frames, *shape)
+        value = instances[key]
+        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != want:
+            raise ValueError(f"instances[{key!r}] must be {dtype} {want}, got "
+                             f"{getattr(value, 'dtype', type(value).__name__)} {np.shape(value)}")
+        records[key] = value
+    return records
+
+
+def event_records(events: list[dict[str, Any]]) -> np.ndarray:
+    """`Scene.events` -> a structured (E,) array of `EVENT_DTYPE`."""
+    columns = event_columns(events)
+    records = np.zeros(len(events), EVENT_DTYPE)
+    for key, value in columns.items():
+        records[key] = value
+    return records
 
 
 # --- arrays -------------------------------------------------------------------------------------

@@ -25,6 +25,16 @@ from datagen.scene import Scene
 from datagen.simulate import SimulationResult, simulate
 
 
+OPTIONAL_LAYERS = ("normal", "object_coordinates", "instances", "events")  # config `layers.*`
+
+
+def camera_lens(camera) -> dict[str, float]:
+    """Kubric's camera record beside K: focal_length and sensor_width (mm, horizontal fit) and
+    the horizontal field_of_view 2 atan(sensor / 2 focal) (rad), so K[0,0] = focal / sensor * W."""
+    return {"focal_length": float(camera.focal_mm), "sensor_width": float(camera.sensor_mm),
+            "field_of_view": float(2 * np.arctan(camera.sensor_mm / (2 * camera.focal_mm)))}
+
+
 def scene_rngs(seed: int, scene_index: int) -> dict[str, np.random.Generator]:
     """Independent generators per stage, so changing one stage's draws leaves the others alone."""
     children = np.random.SeedSequence([int(seed), int(scene_index)]).spawn(2)
@@ -68,9 +78,16 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
     depth = np.zeros((num_frames, height, width), np.float32)
     segmentation = np.zeros((num_frames, height, width), np.int32)
     rgb = np.zeros((num_frames, height, width, 3), np.uint8)
+    layers = cfg.layers
+    surface = bool(layers.normal or layers.object_coordinates)
+    normal = np.zeros((num_frames, height, width, 3), np.float32) if surface else None
+    coordinates = np.zeros((num_frames, height, width, 3), np.float32) if surface else None
     num_samples = render.num_blur_samples(description.motion_blur, cfg)
     for t in range(num_frames):
         depth[t], segmentation[t] = renderer.render_labels(object_to_world[:, t], cam_to_world[t])
+        if surface:
+            normal[t], coordinates[t] = renderer.render_surface(object_to_world[:, t],
+                                                                cam_to_world[t])
         if num_samples == 1:
             rgb[t] = renderer.render_rgb(object_to_world[:, t], cam_to_world[t])
         else:
@@ -86,6 +103,19 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
     threshold = float(cfg.mobility_threshold)
     tracks = annotate.point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
                                    scene_rngs(cfg.seed, scene_index)["tracks"], cfg, threshold)
+    instances = events = None
+    if layers.instances:
+        boxes = np.stack([assets.get(description.objects[i].asset_id)
+                          .bounds(description.objects[i].scale) for i in sim.placed]
+                         ).reshape(-1, 2, 3)  # (K,2,3)
+        frames = slice(1, num_frames + 1)  # velocities are kept at frame times -1..T
+        instances = annotate.instance_labels(
+            segmentation, intrinsics, cam_to_world, object_to_world, boxes,
+            sim.velocities[:, frames], sim.angular_velocities[:, frames],
+            np.array([description.objects[i].tossed for i in sim.placed], bool))
+    if layers.events:
+        events = annotate.collision_events(sim.contacts, sim.steps_per_frame, K,
+                                           lambda ts: description.camera.pose_at(ts, num_frames))
     clock["labels"] = time.perf_counter() - start
 
     visible_pixels = np.bincount(segmentation.ravel(), minlength=len(sim.placed) + 1)[1:]
@@ -112,12 +142,17 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
         "flow_bwd_valid": [t > 0 for t in range(num_frames)],
         **description.meta,
         "placed_objects": len(sim.placed),
+        "layers": {name: bool(layers[name]) for name in OPTIONAL_LAYERS},
     }
+    meta["camera"] = {**meta["camera"], **camera_lens(description.camera)}
     return Scene(
         rgb=rgb, depth=depth, segmentation=segmentation, flow_fwd=flow_fwd, flow_bwd=flow_bwd,
         intrinsics=intrinsics.astype(np.float32), cam_to_world=cam_to_world.astype(np.float32),
         object_to_world=object_to_world.astype(np.float32), objects=objects,
         tracks=tracks.tracks, occluded=tracks.occluded, query_frame=tracks.query_frame,
         track_object=tracks.track_object, tracks_world=tracks.tracks_world,
-        displacement=tracks.displacement, moving=tracks.moving, meta=meta,
+        displacement=tracks.displacement, moving=tracks.moving,
+        normal=normal if layers.normal else None,
+        object_coordinates=coordinates if layers.object_coordinates else None,
+        instances=instances, events=events, meta=meta,
     )

@@ -1,10 +1,14 @@
-"""Rendering with pyrender on EGL (Mesa's software renderer works): RGB, z-depth, segmentation.
+"""Rendering with pyrender on EGL (Mesa's software renderer works): RGB, z-depth, segmentation,
+surface normals and object coordinates.
 
 - RGB: lit by a shadow-casting sun, a fill light and ambient light, 4x multisampled, with
   datagen's own lit-pass shaders (datagen/shaders/: textured Lambert + Blinn-Phong, 4-tap shadow
   filter), several times cheaper than pyrender's PBR shader on a software renderer.
 - Labels: z-depth and instance segmentation from pyrender's segmentation pass, which renders
   without multisampling, so every pixel holds the surface hit by the ray through its centre.
+- Surface (optional layers): one more pass like the label pass (same pixels, same culling) with
+  datagen's surface shaders writing the world-space shading normal and the object coordinates
+  into two float32 attachments of the process's own framebuffer.
 - Motion blur (MOVi-F): the average of sub-frame renders at object poses interpolated between
   physics steps and at the camera pose of the same instant, over a shutter centred on the frame
   time. Labels are always rendered sharp at the frame time.
@@ -56,6 +60,9 @@ def _shader_cache_class():
             if fragment_shader == "mesh.frag":  # the lit pass; depth, shadow and seg stay
                 vertex_shader = str(SHADER_DIR / "mesh.vert")
                 fragment_shader = str(SHADER_DIR / "mesh.frag")
+            elif fragment_shader == "flat.frag":  # pyrender's FLAT pass, unused: the surface pass
+                vertex_shader = str(SHADER_DIR / "surface.vert")
+                fragment_shader = str(SHADER_DIR / "surface.frag")
             return super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
 
     return DatagenShaders
@@ -105,6 +112,33 @@ def _offscreen():
     offscreen = _pyrender().OffscreenRenderer(1, 1)
     offscreen._renderer._program_cache = _shader_cache_class()()  # pyrender has no public hook
     return offscreen
+
+
+_SURFACE_TARGET: dict = {}  # the process's surface framebuffer: size, framebuffer, renderbuffers
+
+
+def _surface_target(width: int, height: int) -> int:
+    """The framebuffer of the surface pass at (height, width): two float32 RGBA colour
+    attachments (normal, object coordinates) and a 24-bit depth buffer like pyrender's. One per
+    process (in its one EGL context), made again when the size changes."""
+    from OpenGL import GL as gl
+
+    if _SURFACE_TARGET.get("size") != (width, height):
+        if _SURFACE_TARGET:
+            gl.glDeleteFramebuffers(1, [_SURFACE_TARGET["framebuffer"]])
+            gl.glDeleteRenderbuffers(3, _SURFACE_TARGET["renderbuffers"])
+        buffers = [int(b) for b in gl.glGenRenderbuffers(3)]
+        framebuffer = int(gl.glGenFramebuffers(1))
+        gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, framebuffer)
+        formats = (gl.GL_RGBA32F, gl.GL_RGBA32F, gl.GL_DEPTH_COMPONENT24)
+        attachments = (gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1, gl.GL_DEPTH_ATTACHMENT)
+        for buffer, storage, attachment in zip(buffers, formats, attachments):
+            gl.glBindRenderbuffer(gl.GL_RENDERBUFFER, buffer)
+            gl.glRenderbufferStorage(gl.GL_RENDERBUFFER, storage, width, height)
+            gl.glFramebufferRenderbuffer(gl.GL_DRAW_FRAMEBUFFER, attachment, gl.GL_RENDERBUFFER,
+                                         buffer)
+        _SURFACE_TARGET.update(size=(width, height), framebuffer=framebuffer, renderbuffers=buffers)
+    return _SURFACE_TARGET["framebuffer"]
 
 
 def _offscreen_for(width: int, height: int, shadow_map_size: int):
@@ -212,11 +246,15 @@ class SceneRenderer:
         self.scene = pyrender.Scene(ambient_light=np.full(3, description.ambient),
                                     bg_color=np.zeros(4))
         self.object_nodes = []
+        self.boxes = {}  # node -> (box_min, box_scale) of the surface pass (object coordinates)
         for index in object_indices:
             spec = description.objects[index]
-            mesh = object_mesh(assets.get(spec.asset_id), spec.scale, spec.texture_seed,
-                               spec.uv_tiles, int(cfg.assets.texture_size))
+            asset = assets.get(spec.asset_id)
+            mesh = object_mesh(asset, spec.scale, spec.texture_seed, spec.uv_tiles,
+                               int(cfg.assets.texture_size))
             self.object_nodes.append(self.scene.add(mesh))
+            low, high = asset.bounds(spec.scale)
+            self.boxes[self.object_nodes[-1]] = (low, 1.0 / np.maximum(high - low, 1e-12))
         # Backdrop: segment 0, never moves.
         rng = np.random.default_rng(description.backdrop_seed)
         if description.background_id is None:
@@ -255,6 +293,7 @@ class SceneRenderer:
                                            znear=float(cfg.camera.znear),
                                            zfar=float(cfg.camera.zfar))
         self.camera_node = self.scene.add(camera)
+        self.boxes[backdrop] = (np.zeros(3), np.zeros(3))  # object coordinates 0
         # Segment k (1-based) encoded as colour (k mod 256, k div 256, 0).
         self.seg_colors = {backdrop: np.zeros(3)}
         self.seg_colors.update({node: np.array([k % 256, k // 256, 0])
@@ -281,6 +320,58 @@ class SceneRenderer:
                                             seg_node_map=self.seg_colors)
         segmentation = color[..., 0].astype(np.int32) + 256 * color[..., 1].astype(np.int32)
         return depth.astype(np.float32), segmentation
+
+    def render_surface(self, object_to_world: np.ndarray,
+                       cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World-space unit shading normals float32 (H,W,3) and object coordinates float32
+        (H,W,3) in [0,1]^3 (0 on the backdrop) at the pixel centres, covering exactly the pixels
+        of `render_labels` (same clip positions, depth test, culling and draw order).
+
+        object_to_world (K,4,4), cam_to_world (4,4) OpenCV.
+        """
+        from OpenGL import GL as gl
+
+        pyrender = _pyrender()
+        self._set_poses(object_to_world, cam_to_world)
+        offscreen = self.renderer
+        offscreen._platform.make_current()
+        renderer = offscreen._renderer
+        flags = pyrender.RenderFlags.SEG  # pyrender's label-pass state: no material, back faces culled
+        renderer._update_context(self.scene, flags)
+        gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, _surface_target(self.width, self.height))
+        gl.glDrawBuffers(2, [gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1])
+        gl.glViewport(0, 0, self.width, self.height)
+        gl.glEnable(gl.GL_DEPTH_TEST)
+        gl.glDepthMask(gl.GL_TRUE)
+        gl.glDepthFunc(gl.GL_LESS)
+        gl.glDepthRange(0.0, 1.0)
+        gl.glDisable(gl.GL_MULTISAMPLE)
+        gl.glClearColor(0.0, 0.0, 0.0, 0.0)
+        gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
+        V, P = renderer._get_camera_matrices(self.scene)
+        program = None
+        for node in renderer._sorted_mesh_nodes(self.scene):
+            low, scale = self.boxes[node]
+            for primitive in node.mesh.primitives:
+                program = renderer._get_primitive_program(primitive, pyrender.RenderFlags.FLAT,
+                                                          pyrender.constants.ProgramFlags.NONE)
+                program._bind()
+                program.set_uniform("V", V)
+                program.set_uniform("P", P)
+                program.set_uniform("box_min", low)
+                program.set_uniform("box_scale", scale)
+                renderer._bind_and_draw_primitive(primitive, self.scene.get_pose(node), program,
+                                                  flags)
+        if program is not None:
+            program._unbind()
+        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _surface_target(self.width, self.height))
+        images = []
+        for attachment in (gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1):
+            gl.glReadBuffer(attachment)
+            data = gl.glReadPixels(0, 0, self.width, self.height, gl.GL_RGB, gl.GL_FLOAT)
+            image = np.frombuffer(data, np.float32).reshape(self.height, self.width, 3)
+            images.append(np.ascontiguousarray(image[::-1]))  # OpenGL's rows run bottom-up
+        return images[0], images[1]
 
 
 def shutter_times(frame: int, shutter: float, num_samples: int) -> np.ndarray:

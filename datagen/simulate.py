@@ -4,6 +4,8 @@ Kubric's recipe: static objects are placed without overlap and settle (friction 
 before the toss; then they get friction/restitution 0.5/0.5, their velocities are zeroed, the
 tossed objects are placed among them and thrown. Poses are recorded at every physics step from the
 toss (time -1, in frames) to time T, so sub-frame poses for motion blur come straight from physics.
+Velocities are pybullet's at every frame time, and (when asked) every contact of every step is
+kept, as Kubric records its collision events.
 
 Deviations from Kubric: collision shapes are convex hulls of the visual meshes (not VHACD
 decompositions), mass is density x hull volume at the object's scale (not the unscaled GSO mass),
@@ -33,6 +35,9 @@ class SimulationResult:
     quaternions: np.ndarray  # float64 (K,S,4) (w,x,y,z)
     start_velocities: np.ndarray  # float64 (K,3) at the toss (units/s)
     settle_steps: int
+    velocities: np.ndarray  # float64 (K,T+2,3) linear, world, units/s, at frame times -1..T
+    angular_velocities: np.ndarray  # float64 (K,T+2,3) world, rad/s, at frame times -1..T
+    contacts: np.ndarray | None  # CONTACT_DTYPE (E,) every contact of every step; None: not kept
 
     def poses_at(self, times: np.ndarray) -> np.ndarray:
         """Object-to-world (K,n,4,4) at n frame times in [-1, T], interpolated between steps."""
@@ -43,6 +48,22 @@ class SimulationResult:
         pos = (1 - alpha[:, None]) * self.positions[:, lo] + alpha[:, None] * self.positions[:, hi]
         quat = geometry.quat_slerp(self.quaternions[:, lo], self.quaternions[:, hi], alpha)
         return geometry.make_pose(geometry.quat_to_matrix(quat), pos)  # (K,n,4,4)
+
+
+# One contact point of one step (pybullet's getContactPoints): the bodies as object indices into
+# `placed` (-1: the floor), the step (0 at time -1), the point on body b and the normal on b
+# (pointing from b to a), both world, the normal force (N) and the signed distance (units).
+CONTACT_DTYPE = np.dtype([("bodies", np.int32, (2,)), ("step", np.int32),
+                          ("position", np.float64, (3,)), ("normal", np.float64, (3,)),
+                          ("force", np.float64), ("distance", np.float64)])
+MIN_CONTACT_FORCE = 1e-6  # N; Kubric's threshold for a contact to count as a collision event
+
+
+def _contacts(client: int, step: int, index_of: dict[int, int]) -> list[tuple]:
+    """The contacts of the current step pressing with more than `MIN_CONTACT_FORCE`, as
+    `CONTACT_DTYPE` rows; `index_of` maps body ids to object indices (-1 for the floor)."""
+    return [((index_of[c[1]], index_of[c[2]]), step, c[6], c[7], c[9], c[8])
+            for c in pb.getContactPoints(physicsClientId=client) if c[9] > MIN_CONTACT_FORCE]
 
 
 def _configure(client: int, cfg) -> None:
@@ -93,7 +114,10 @@ def _settle(client: int, bodies: list[int], max_frames: int, steps_per_frame: in
 
 
 def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> SimulationResult:
-    """Place, settle, toss and simulate; returns poses at every step from time -1 to time T."""
+    """Place, settle, toss and simulate; returns poses at every step from time -1 to time T,
+    velocities at every frame time and, where `cfg.layers.events` is on, every contact of those
+    steps."""
+    contacts = bool(cfg.layers.events)
     steps_per_frame = int(round(cfg.physics.step_rate / description.fps))
     client = pb.connect(pb.DIRECT)
     try:
@@ -159,18 +183,27 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
         num_steps = (description.num_frames + 1) * steps_per_frame + 1
         positions = np.zeros((len(placed), num_steps, 3))
         quats_xyzw = np.zeros((len(placed), num_steps, 4))
+        velocities = np.zeros((2, len(placed), description.num_frames + 2, 3))  # linear, angular
         start_velocities = np.array(
             [pb.getBaseVelocity(bodies[i], physicsClientId=client)[0] for i in placed]
         ).reshape(-1, 3)
+        index_of = {floor: -1} | {bodies[i]: k for k, i in enumerate(placed)}
+        contact_rows: list[tuple] = []
         for step in range(num_steps):
             if step:
                 pb.stepSimulation(physicsClientId=client)
+                if contacts:
+                    contact_rows += _contacts(client, step, index_of)
             for k, i in enumerate(placed):
                 position, orientation = pb.getBasePositionAndOrientation(
                     bodies[i], physicsClientId=client)
                 positions[k, step] = position
                 quats_xyzw[k, step] = orientation
+                if step % steps_per_frame == 0:
+                    velocities[:, k, step // steps_per_frame] = pb.getBaseVelocity(
+                        bodies[i], physicsClientId=client)
     finally:
         pb.disconnect(physicsClientId=client)
     return SimulationResult(placed, steps_per_frame, positions, geometry.quat_from_xyzw(quats_xyzw),
-                            start_velocities, settle_steps)
+                            start_velocities, settle_steps, velocities[0], velocities[1],
+                            np.array(contact_rows, CONTACT_DTYPE) if contacts else None)

@@ -161,14 +161,23 @@ def test_mobility_labels_follow_world_motion(scene):
     assert on_tossed.sum() > 0 and scene.moving[on_tossed, 0].all()  # in flight at frame 0
 
 
+def assert_same_fields(a: Scene, b: Scene) -> None:
+    """Every field of `a` and `b` equal: arrays (and the arrays of `instances`) bit for bit."""
+    for name in Scene.field_names():
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray):
+            np.testing.assert_array_equal(x, y, err_msg=name)
+        elif isinstance(x, dict) and name == "instances":
+            assert list(x) == list(y)
+            for key in x:
+                assert x[key].tobytes() == y[key].tobytes(), key
+        else:
+            assert x == y, name
+
+
 def test_generation_is_deterministic_per_seed_and_index(cfg, assets, scene):
     again = generate_scene(cfg, MOVIE_INDEX, assets)
-    for name in Scene.field_names():
-        a, b = getattr(scene, name), getattr(again, name)
-        if isinstance(a, np.ndarray):
-            np.testing.assert_array_equal(a, b, err_msg=name)
-        else:
-            assert a == b, name
+    assert_same_fields(scene, again)
     other = generate_scene(cfg, MOVIE_INDEX + 1, assets)
     assert other.meta["camera"] != scene.meta["camera"]
     assert not np.array_equal(other.rgb, scene.rgb)
@@ -178,8 +187,11 @@ def scene_digest(scene: Scene) -> str:
     digest = hashlib.sha1()
     for name in Scene.field_names():
         value = getattr(scene, name)
-        if isinstance(value, np.ndarray):
-            digest.update(value.tobytes())
+        for array in (value.values() if isinstance(value, dict) and name == "instances"
+                      else [value]):
+            if isinstance(array, np.ndarray):
+                digest.update(array.tobytes())
+    digest.update(repr(scene.events).encode())
     return digest.hexdigest()
 
 

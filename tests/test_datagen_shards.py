@@ -9,20 +9,37 @@ import pytest
 
 from c4d_core.errors import UserError
 from datagen import Scene, read_scenes
-from datagen.codecs import ARRAY_FIELDS, decode_array, encode_array
+from datagen.codecs import (ARRAY_FIELDS, JSON_FIELDS, QUANTISED, RECORD_FIELDS, decode_array,
+                            dequantise, encode_array, quantise)
+from datagen.scene import EVENT_KEYS
 from datagen.jobs import ShardPlan, resolve_task
 from datagen.shards import (
     ShardWriter, decode_scene, encode_scene, iter_samples, list_shards, scene_key,
 )
 
 
-def synthetic_scene(seed=0, frames=4, height=12, width=10, num_objects=3, num_tracks=7):
-    """A Scene with random values of the contract's dtypes and shapes (float labels at full entropy)."""
+def synthetic_scene(seed=0, frames=4, height=12, width=10, num_objects=3, num_tracks=7,
+                    num_events=5):
+    """A Scene with random values of the contract's dtypes and shapes (float labels at full
+    entropy; the quantised layers on their 16-bit grid, so they too round-trip exactly)."""
     rng = np.random.default_rng(seed)
     t, h, w, k, n = frames, height, width, num_objects, num_tracks
 
     def f32(*shape):
         return (rng.standard_normal(shape) * 10).astype(np.float32)
+
+    def grid(name):
+        return dequantise(rng.integers(0, 65536, (t, h, w, 3)).astype(np.uint16), *QUANTISED[name])
+
+    boxes = rng.random((k, t, 4)).astype(np.float32)
+    boxes[0, 1] = np.nan  # object 0 hidden at frame 1
+    instances = {"bbox_3d": f32(k, t, 8, 3), "bbox_2d": boxes,
+                 "visible_pixels": rng.integers(0, 99, (k, t)).astype(np.int32),
+                 "image_position": f32(k, t, 2), "velocity": f32(k, t, 3),
+                 "angular_velocity": f32(k, t, 3), "is_dynamic": rng.random(k) < 0.5}
+    events = [{key: (rng.integers(-1, k, shape).tolist() if dtype.kind == "i" else
+                     (rng.standard_normal(shape) * 10).astype(dtype).tolist())
+               for key, (dtype, shape) in EVENT_KEYS.items()} for _ in range(num_events)]
 
     return Scene(
         rgb=rng.integers(0, 256, (t, h, w, 3), dtype=np.uint8),
@@ -42,6 +59,8 @@ def synthetic_scene(seed=0, frames=4, height=12, width=10, num_objects=3, num_tr
         tracks_world=f32(n, t, 3),
         displacement=np.abs(f32(n, t)),
         moving=rng.random((n, t)) < 0.5,
+        normal=grid("normal"), object_coordinates=grid("object_coordinates"),
+        instances=instances, events=events,
         meta={"preset": "movi-e", "seed": seed, "scene_index": 3, "fps": 12.0,
               "resolution": [h, w], "motion_blur": 0.0, "mobility_threshold": 0.01},
     )
@@ -53,6 +72,11 @@ def assert_scenes_equal(a: Scene, b: Scene):
         if isinstance(x, np.ndarray):
             assert isinstance(y, np.ndarray) and x.dtype == y.dtype and x.shape == y.shape, name
             assert np.array_equal(x, y), name  # bit-exact, float labels included
+        elif isinstance(x, dict) and name == "instances":
+            assert isinstance(y, dict) and list(x) == list(y), name
+            for key in x:
+                assert x[key].dtype == y[key].dtype and x[key].shape == y[key].shape, key
+                assert x[key].tobytes() == y[key].tobytes(), key  # NaN where hidden included
         else:
             assert x == y, name
 
@@ -86,7 +110,8 @@ def test_every_field_round_trips_exactly(tmp_path):
 def test_segmentation_above_255_and_absent_fields(tmp_path):
     scene = synthetic_scene(num_objects=300)
     scene.segmentation[0, 0, 0] = 300
-    for name in ("depth", "flow_fwd", "flow_bwd", "object_to_world", "tracks_world", "moving"):
+    for name in ("depth", "flow_fwd", "flow_bwd", "object_to_world", "tracks_world", "moving",
+                 "normal", "object_coordinates", "instances", "events"):
         setattr(scene, name, None)
     out = decode_scene(encode_scene(scene, "k"))
     assert_scenes_equal(out, scene)
@@ -252,4 +277,37 @@ def test_json_fields_accept_numpy_values():
 
 
 def test_contract_table_matches_scene_fields():
-    assert set(ARRAY_FIELDS) | {"objects", "meta"} == set(Scene.field_names())
+    assert set(ARRAY_FIELDS) | set(JSON_FIELDS) | set(RECORD_FIELDS) == set(Scene.field_names())
+
+
+def test_quantised_layers_are_within_half_a_step_and_stable():
+    rng = np.random.default_rng(1)
+    for name, (low, high) in QUANTISED.items():
+        value = rng.uniform(low, high, (5, 4, 3, 3)).astype(np.float32)
+        value[0, 0, 0] = [low, high, (low + high) / 2]
+        steps = quantise(value, low, high)
+        back = dequantise(steps, low, high)
+        assert back.dtype == np.float32
+        assert np.abs(back - value).max() <= (high - low) / 65535 / 2 * 1.001, name
+        np.testing.assert_array_equal(quantise(back, low, high), steps)  # a re-encode is exact
+        assert back[0, 0, 0].tolist() == [low, high, pytest.approx((low + high) / 2, abs=2e-5)]
+
+
+def test_old_samples_without_the_optional_layers_read_them_as_none():
+    """A sample written before the optional layers existed (no such members) still reads."""
+    sample = encode_scene(synthetic_scene(), "train-00000000")
+    optional = ("normal.u16.npy.bsz", "object_coordinates.u16.npy.bsz", "instances.npy.bsz",
+                "events.npy.bsz")
+    assert set(optional) <= set(sample)
+    old = {k: v for k, v in sample.items() if k not in optional and k != "checksums.json"}
+    out = decode_scene(old)
+    assert out.normal is None and out.object_coordinates is None
+    assert out.instances is None and out.events is None
+    assert np.array_equal(out.tracks, synthetic_scene().tracks)
+
+
+def test_instances_of_the_wrong_layout_are_refused():
+    scene = synthetic_scene()
+    scene.instances["velocity"] = scene.instances["velocity"].astype(np.float64)
+    with pytest.raises(ValueError, match="velocity"):
+        encode_scene(scene, "k")
