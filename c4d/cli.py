@@ -30,6 +30,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "track": ("dynpt.cli_track", "track points in a video and write tracks plus an overlay video"),
     "run": ("c4d_pipeline.cli_run", "reconstruct a monocular video with C4D (depth, poses, masks, 3D tracks)"),
     "eval-recon": ("c4d_pipeline.cli_eval_recon", "score a reconstruction against ground truth"),
+    "export": ("datagen.export.cli", "write a dataset as Kubric, CoTracker or TAP-Vid files their own code reads"),
     "demo": ("c4d.demo", "the whole chain on a small generated dataset, in minutes on a CPU"),
     "config": ("c4d.cli_config", "print a preset's fully resolved config: config show GROUP/PRESET [key=value ...]"),
 }

@@ -1,0 +1,219 @@
+"""What every export shares: the scenes of a dataset, the layers a format needs, the output's
+identity, and the resumable per-scene loop.
+
+A folder format (kubric, cotracker) writes one sub-folder per scene, named by the scene index
+(`00000042`, as Kubric's job folders are integers). Each is written whole into `NAME.partial`
+(`c4d_core.files.staged_folder`) and renamed when complete, so a folder `NAME` is always a finished
+scene; the first file of each is `c4d_export.json` (`RECORD`): the format and the dataset it came
+from. A rerun into the same OUT skips the finished scenes and redoes the partial ones; an OUT
+holding anything else (other files, another format, another dataset) is refused before anything
+is written. A file format (tapvid) writes one file atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from tqdm import tqdm
+
+from c4d_core.errors import UserError
+from c4d_core.files import atomic_path, make_folder, remove_empty_folders, staged_folder, write_json
+from datagen.scene import Scene
+from datagen.shards import decode_scene, iter_samples, list_shards, scenes_in_shard
+
+log = logging.getLogger(__name__)
+
+RECORD = "c4d_export.json"  # in every exported scene folder, written first
+PARTIAL = ".partial"  # staged_folder's suffix for a scene folder being written
+
+# optional layers an export may need -> how a dataset gets them (`c4d datagen` key=value)
+LAYER_SWITCHES = {
+    "depth": "the default of every preset",
+    "segmentation": "the default of every preset",
+    "flow_fwd": "the default of every preset",
+    "flow_bwd": "the default of every preset",
+    "object_to_world": "the default of every preset",
+    "moving": "the default of every preset",
+    "normal": "layers.normal=true",
+    "object_coordinates": "layers.object_coordinates=true",
+    "instances": "layers.instances=true",
+    "events": "layers.events=true",
+}
+
+
+@dataclass(frozen=True)
+class ExportFormat:
+    """One export: `c4d export NAME DATA OUT`.
+
+    `fields`: the Scene fields it reads (None: all); `layers`: the optional ones of those it cannot
+    do without (a scene without one is refused, naming the layer and its `LAYER_SWITCHES` entry).
+    A folder format has `write_scene(scene, folder, name)`, writing the scene `name` into its
+    (empty, staged) folder; a file format has `write_file(scenes, path)`, writing every (name, scene) pair of
+    `scenes` into one file.
+    """
+
+    name: str
+    summary: str
+    fields: tuple[str, ...] | None
+    layers: tuple[str, ...]
+    write_scene: Callable[[Scene, Path, str], None] | None = None
+    write_file: Callable[[Iterator[tuple[str, Scene]], Path], int] | None = None
+
+
+def source_of(meta: dict[str, Any]) -> dict[str, Any]:
+    """The identity of the dataset a scene belongs to: split, seed and config digest."""
+    return {"split": meta.get("split"), "seed": meta.get("seed"),
+            "config_digest": meta.get("config_digest")}
+
+
+def describe(source: dict[str, Any]) -> str:
+    """`source_of`'s identity in words: `split 'train', seed 5, config_digest '601f84c5c1834a09'`."""
+    return ", ".join(f"{key} {value!r}" for key, value in source.items())
+
+
+def scene_name(key: str) -> str:
+    """An exported scene's name, from its webdataset key: the index part (`train-00000042` ->
+    `00000042`)."""
+    return key.rpartition("-")[2]
+
+
+def check_layers(fmt: ExportFormat, scene: Scene, where: str) -> None:
+    """UserError naming every layer `fmt` needs that `scene` lacks, and how to generate it."""
+    missing = [name for name in fmt.layers if getattr(scene, name, None) is None]
+    if missing:
+        how = "; ".join(f"{name}: {LAYER_SWITCHES[name]}" for name in missing)
+        raise UserError(f"{where} lacks the layer(s) {', '.join(missing)}, which the {fmt.name} "
+                        f"export needs; generate the dataset with them ({how})")
+
+
+class _Scenes:
+    """The scenes of DATA in reading order, each checked to be of one dataset and to have the
+    layers of the format; `skip(name)` says which scenes not to decode (read, not decoded)."""
+
+    def __init__(self, fmt: ExportFormat, data: str | Path):
+        self.fmt, self.data = fmt, data
+        self.fields = None if fmt.fields is None else (*fmt.fields, "meta")
+        self.shards = list_shards(data)
+        self.source: dict[str, Any] | None = None
+        counts = [scenes_in_shard(shard) for shard in self.shards]
+        self.total = None if None in counts else sum(counts)
+
+    def first_source(self) -> dict[str, Any]:
+        """The identity of DATA: that of its first scene (only its meta is decoded)."""
+        for sample in iter_samples(self.shards[0], fields=("meta",)):
+            return source_of(decode_scene(sample, fields=("meta",)).meta)
+        raise UserError(f"{self.shards[0]} holds no scene; rerun `c4d datagen`")
+
+    def samples(self) -> Iterator[dict[str, Any]]:
+        for shard in self.shards:
+            yield from iter_samples(shard, self.fields)
+
+    def decode(self, sample: dict[str, Any]) -> Scene:
+        scene = decode_scene(sample, self.fields)
+        where = f"scene {sample['__key__']!r} of {sample['__url__']}"
+        source = source_of(scene.meta)
+        self.source = self.source or source
+        if source != self.source:
+            raise UserError(f"{self.data} mixes datasets: {where} is of {describe(source)}, the "
+                            f"scenes before it of {describe(self.source)}; export one dataset at a time")
+        check_layers(self.fmt, scene, where)
+        return scene
+
+
+def _read_record(folder: Path) -> dict[str, Any] | None:
+    try:
+        record = json.loads((folder / RECORD).read_text())
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _claim_folder(fmt: ExportFormat, out: Path, source: dict[str, Any]) -> None:
+    """Refuse `out` unless it is missing, empty, or holds only scene folders (finished or partial)
+    of a `fmt` export of the dataset `source`."""
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out} is a file; the {fmt.name} export writes a folder of scene folders: "
+                        "choose a new or empty folder")
+    for entry in sorted(out.iterdir()) if out.is_dir() else ():
+        name = entry.name.removesuffix(PARTIAL)
+        record = _read_record(entry) if entry.is_dir() and name.isdigit() else None
+        if record == {"format": fmt.name, "source": source, "scene": name}:
+            continue  # a scene of this export, finished or partial
+        if record is None and entry.name.endswith(PARTIAL) and entry.is_dir() and not any(entry.iterdir()):
+            continue  # a partial scene killed before its first file
+        theirs = record.get("source") if record else None
+        what = (f"{entry.name}, a {record.get('format')} export of "
+                f"{describe(theirs) if isinstance(theirs, dict) else theirs}" if record else
+                f"{entry.name}, which no {fmt.name} export writes")
+        raise UserError(f"{out} is not empty and is not a {fmt.name} export of this dataset "
+                        f"({describe(source)}): it holds {what}; choose a new or empty folder")
+
+
+def export_folders(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, int]:
+    """Export every scene of `data` into `out/NAME/`, skipping finished ones; returns (written,
+    already there). An OUT this call created is removed again if it fails before a scene is done."""
+    scenes = _Scenes(fmt, data)
+    scenes.source = scenes.first_source()
+    _claim_folder(fmt, out, scenes.source)
+    created = not out.exists()
+    make_folder(out)
+    written = skipped = 0
+    try:
+        with tqdm(total=scenes.total, unit="scene", desc=f"export {fmt.name}",
+                  dynamic_ncols=True) as bar:
+            for sample in scenes.samples():
+                name = scene_name(sample["__key__"])
+                if (out / name).is_dir():  # complete: renamed into place as a whole
+                    skipped += 1
+                else:
+                    scene = scenes.decode(sample)
+                    with staged_folder(out / name) as stage:
+                        write_json(stage / RECORD, {"format": fmt.name, "source": scenes.source,
+                                                    "scene": name})
+                        fmt.write_scene(scene, stage, name)
+                    written += 1
+                bar.update()
+    except BaseException:
+        if created:
+            remove_empty_folders(out)
+        raise
+    return written, skipped
+
+
+def export_file(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, int]:
+    """Export every scene of `data` into the one file `out`, written atomically; returns
+    (written, 0). An existing `out` is refused."""
+    if out.is_dir():
+        raise UserError(f"{out} is a folder; the {fmt.name} export writes one file: give a file "
+                        "name such as OUT.pkl")
+    if out.exists():
+        raise UserError(f"{out} already exists; remove it or choose another name")
+    scenes = _Scenes(fmt, data)
+
+    def decoded() -> Iterator[tuple[str, Scene]]:
+        with tqdm(total=scenes.total, unit="scene", desc=f"export {fmt.name}",
+                  dynamic_ncols=True) as bar:
+            for sample in scenes.samples():
+                yield scene_name(sample["__key__"]), scenes.decode(sample)
+                bar.update()
+
+    with atomic_path(out) as tmp:
+        written = fmt.write_file(decoded(), tmp)
+    return written, 0
+
+
+def export(fmt: ExportFormat, data: str | Path, out: str | Path) -> tuple[int, int]:
+    """Export the dataset `data` (a shard folder, shard, glob or list, as `datagen.read_scenes`
+    takes) as `fmt` into `out`; returns (scenes written, scenes already there)."""
+    start = time.perf_counter()
+    out = Path(out)
+    run = export_folders if fmt.write_scene is not None else export_file
+    written, skipped = run(fmt, data, out)
+    log.info("exported %d scenes as %s to %s in %.0f s%s", written, fmt.name, out,
+             time.perf_counter() - start, f" ({skipped} already there)" if skipped else "")
+    return written, skipped
