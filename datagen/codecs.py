@@ -141,8 +141,8 @@ def quantise(value: np.ndarray, low: float, high: float) -> np.ndarray:
 
 
 def dequantise(steps: np.ndarray, low: float, high: float) -> np.ndarray:
-    """Inverse of `quantise`: float32 (...), within half a step ((high - low) / 131070) of the
-    value quantised; quantising the result again gives the same steps."""
+    """Inverse of `quantise`: float32 (...), within half a step ((high - low) / 131070, plus 2 %
+    of float32 rounding) of the value quantised; quantising the result gives the same steps."""
     if steps.dtype != np.uint16:
         raise ValueError(f"a quantised layer must be uint16, got {steps.dtype}")
     return steps.astype(np.float32) * np.float32((high - low) / QUANTUM) + np.float32(low)

@@ -21,11 +21,8 @@ from datagen import annotate, render
 from datagen.assets import AssetLibrary, load_asset_library
 from datagen.jobs import config_digest
 from datagen.sampling import SceneDescription, sample_scene
-from datagen.scene import Scene
+from datagen.scene import OPTIONAL_LAYERS, Scene
 from datagen.simulate import SimulationResult, simulate
-
-
-OPTIONAL_LAYERS = ("normal", "object_coordinates", "instances", "events")  # config `layers.*`
 
 
 def camera_lens(camera) -> dict[str, float]:

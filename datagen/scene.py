@@ -14,6 +14,8 @@ import numpy as np
 
 from c4d_core.geometry import swap_track_axes
 
+# The optional layers: Scene fields made only where the config key `layers.<name>` is on.
+OPTIONAL_LAYERS = ("normal", "object_coordinates", "instances", "events")
 # `Scene.instances`: key -> (dtype, shape after the (K,T) axes; None: one value per object, (K,)).
 INSTANCE_KEYS: dict[str, tuple[np.dtype, tuple[int, ...] | None]] = {
     "bbox_3d": (np.dtype(np.float32), (8, 3)),  # world corners, x slowest then y then z

@@ -288,7 +288,7 @@ def test_quantised_layers_are_within_half_a_step_and_stable():
         steps = quantise(value, low, high)
         back = dequantise(steps, low, high)
         assert back.dtype == np.float32
-        assert np.abs(back - value).max() <= (high - low) / 65535 / 2 * 1.001, name
+        assert np.abs(back - value).max() <= (high - low) / 65535 / 2 * 1.02, name
         np.testing.assert_array_equal(quantise(back, low, high), steps)  # a re-encode is exact
         assert back[0, 0, 0].tolist() == [low, high, pytest.approx((low + high) / 2, abs=2e-5)]
 

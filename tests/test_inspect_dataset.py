@@ -167,3 +167,45 @@ def test_real_datagen_shards_pass_the_check_and_report(tmp_path):
     blur = summary["statistics"]["blur_shutter"]
     assert blur["count"] == 1 and blur["max"] == 0.0, "movi-e is sharp"
     assert summary["statistics"]["objects_per_scene"]["min"] >= 10
+
+
+def test_optional_layers_are_drawn_and_checked(tmp_path):
+    """A real scene with every optional layer: the sheet shows normals and object coordinates
+    and the 2-D boxes on the RGB; `--check` passes it and names each layer broken on purpose."""
+    shard_dir = tmp_path / "layers"
+    assert main(["datagen", "--preset", "movi-e", "--num-scenes", "1", "--out", str(shard_dir),
+                 "--resolution", "48", "--frames", "4", "layers.normal=true",
+                 "layers.object_coordinates=true", "layers.events=true"]) == 0
+    assert main(["inspect", str(shard_dir), "--check", "--no-progress"]) == 0
+    scene = next(iter(dataset_check.iter_dataset(shard_dir))).scene
+    panels, labels = dataset_report.scene_panels(scene, CFG)
+    assert labels == ["rgb + tracks + boxes", "depth", "segmentation", "flow_fwd", "normal",
+                      "object_coordinates"]
+    factor = 4  # 48-pixel scenes are shown 4x larger
+    background = np.repeat(np.repeat(scene.segmentation == 0, factor, 1), factor, 2)  # (T,H',W')
+    assert not panels[5][background].any()  # object coordinates: black on the backdrop
+    floor = background & (np.abs(np.repeat(np.repeat(scene.normal[..., 2], factor, 1), factor, 2)
+                                 - 1) < 1e-4)
+    assert floor.sum() > 100 and (panels[4][floor] == (128, 128, 255)).all()  # +z: light blue
+    # An object's box outline in its segmentation colour, on a frame where it is visible.
+    k, t = np.argwhere(scene.instances["visible_pixels"] > 20)[0]
+    ymin, xmin, ymax, xmax = scene.instances["bbox_2d"][k, t]
+    colour = dataset_report.draw.segment_palette(len(scene.objects) + 1)[k + 1]
+    top = panels[0][t, int(round(ymin * 4 * 48)), int(round(xmin * 4 * 48)):int(round(xmax * 4 * 48))]
+    assert (top == colour).all(-1).mean() > 0.5  # tracks may be drawn over parts of it
+
+    bad_instances = {**scene.instances, "bbox_2d": scene.instances["bbox_2d"] + 0.01,
+                     "visible_pixels": scene.instances["visible_pixels"] + 1}
+    coordinates = scene.object_coordinates.copy()
+    coordinates[scene.segmentation == 0] = 0.5
+    events = [dict(scene.events[0], instances=[99, -1])] + scene.events[1:]
+    bad = dataclasses.replace(scene, normal=scene.normal * 1.01, object_coordinates=coordinates,
+                              instances=bad_instances, events=events)
+    problems = " | ".join(dataset_check.validate_scene(bad, CFG))
+    for expected in ("normal is not of unit length", "object_coordinates are not 0 on",
+                     "instances['visible_pixels'] disagree with the segmentation",
+                     "instances['bbox_2d'] disagree", "events name instances outside"):
+        assert expected in problems, expected
+    missing = dataclasses.replace(scene, events=None)
+    assert "required fields are missing (truncated sample?): events" in \
+        dataset_check.validate_scene(missing, CFG)[0]

@@ -4,7 +4,9 @@
   streaming (memory stays at one scene); the dataset report reads through it too.
 - `validate_scene`: every way one scene breaks the contract (wrong shape or dtype, against
   `datagen.codecs.ARRAY_FIELDS`; non-finite values, ids out of range, occluded at query, mobility
-  label disagreeing with the displacement).
+  label disagreeing with the displacement; of the optional layers: normals not of unit length,
+  object coordinates outside [0,1] or not 0 on the background, boxes and visible pixels that
+  disagree with the segmentation, events naming no object).
 - `check_dataset`: decode and validate every sample, listing every problem (corrupt member,
   truncated or missing shard, ...) with shard and scene key, without stopping at the first.
 """
@@ -20,8 +22,13 @@ from tqdm import tqdm
 
 from c4d_core.errors import UserError
 from datagen import shards
-from datagen.codecs import ARRAY_FIELDS, CHECKSUMS, REQUIRED_FIELDS, wrong_layout
-from datagen.scene import Scene
+from datagen.annotate import segment_boxes
+from datagen.codecs import (ARRAY_FIELDS, CHECKSUMS, QUANTISED, QUANTUM, REQUIRED_FIELDS,
+                            wrong_layout)
+from datagen.scene import EVENT_KEYS, INSTANCE_KEYS, OPTIONAL_LAYERS, Scene
+
+# |n| - 1 allowed in a stored normal: three components each within half a quantisation step.
+NORMAL_TOLERANCE = 4 * (QUANTISED["normal"][1] - QUANTISED["normal"][0]) / QUANTUM
 
 # --------------------------------------------------------------------------------------------
 # Reading
@@ -83,6 +90,8 @@ def _expected_shapes(scene: Scene) -> dict[str, tuple[int | None, ...]]:
         "intrinsics": (t, 3, 3),
         "cam_to_world": (t, 4, 4),
         "tracks": (n, t, 2),
+        "normal": (t, h, w, 3),
+        "object_coordinates": (t, h, w, 3),
     }
     if k is not None:
         shapes["object_to_world"] = (k, t, 4, 4)
@@ -105,7 +114,11 @@ def validate_scene(scene: Scene, cfg) -> list[str]:
     """
     required = REQUIRED_FIELDS
     if isinstance(scene.meta, dict) and scene.meta.get("generator") == "datagen":
-        required = tuple(Scene.field_names())  # every datagen preset produces every field
+        # every datagen preset produces every field but the optional layers, which its meta
+        # lists as made (scenes written before the layers existed list none)
+        layers = scene.meta.get("layers", {})
+        required = tuple(name for name in Scene.field_names()
+                         if name not in OPTIONAL_LAYERS or layers.get(name))
     missing = [name for name in required if getattr(scene, name) is None]
     if missing:
         return [f"required fields are missing (truncated sample?): {', '.join(missing)}"]
@@ -164,6 +177,74 @@ def validate_scene(scene: Scene, cfg) -> list[str]:
             problems.append(f"moving disagrees with displacement > {threshold} at {disagree} points")
     if "displacement" in ok and (scene.displacement < 0).any():
         problems.append("displacement has negative values")
+    return problems + _layer_problems(scene, ok)
+
+
+def _layer_problems(scene: Scene, ok: set[str]) -> list[str]:
+    """The problems of the optional layers (normal, object_coordinates, instances, events)."""
+    problems = []
+    background = scene.segmentation == 0 if "segmentation" in ok else None
+    if "normal" in ok and np.isfinite(scene.normal).all():
+        error = float(np.abs(np.linalg.norm(scene.normal, axis=-1) - 1.0).max())
+        if error > NORMAL_TOLERANCE:
+            problems.append(f"normal is not of unit length (| |n| - 1 | up to {error:.2g})")
+    if "object_coordinates" in ok:
+        coords = scene.object_coordinates
+        if ((coords < 0) | (coords > 1)).any():
+            problems.append("object_coordinates lie outside [0, 1]")
+        if background is not None and coords[background].any():
+            problems.append(f"object_coordinates are not 0 on {int(coords[background].any(-1).sum())}"
+                            " background pixels")
+    if scene.instances is not None:
+        problems += _instance_problems(scene, "segmentation" in ok)
+    if scene.events is not None:
+        problems += _event_problems(scene)
+    return problems
+
+
+def _instance_problems(scene: Scene, with_segmentation: bool) -> list[str]:
+    instances, t, k = scene.instances, scene.num_frames, len(scene.objects)
+    if not isinstance(instances, dict) or set(instances) != set(INSTANCE_KEYS):
+        return [f"instances must hold the keys {list(INSTANCE_KEYS)}"]
+    problems = []
+    for key, (dtype, shape) in INSTANCE_KEYS.items():
+        want = (k,) if shape is None else (k, t, *shape)
+        value = instances[key]
+        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != want:
+            problems.append(f"instances[{key!r}] is {getattr(value, 'dtype', type(value).__name__)} "
+                            f"{np.shape(value)}, expected {dtype} {want}")
+    if problems:
+        return problems
+    for key in ("bbox_3d", "velocity", "angular_velocity"):
+        if not np.isfinite(instances[key]).all():
+            problems.append(f"instances[{key!r}] has NaN or infinite values")
+    if with_segmentation:  # both are exact functions of the segmentation
+        visible, boxes = segment_boxes(scene.segmentation, k)
+        if not np.array_equal(visible, instances["visible_pixels"]):
+            problems.append("instances['visible_pixels'] disagree with the segmentation at "
+                            f"{int((visible != instances['visible_pixels']).sum())} object-frames")
+        if not np.array_equal(boxes, instances["bbox_2d"], equal_nan=True):
+            problems.append("instances['bbox_2d'] disagree with the segmentation's extents")
+    return problems
+
+
+def _event_problems(scene: Scene) -> list[str]:
+    events, k, t = scene.events, len(scene.objects), scene.num_frames
+    if not isinstance(events, list) or any(not isinstance(e, dict) or set(e) != set(EVENT_KEYS)
+                                           for e in events):
+        return [f"events must be a list of dicts with the keys {list(EVENT_KEYS)}"]
+    problems = []
+    instances = np.array([e["instances"] for e in events], np.int64).reshape(-1, 2)
+    if ((instances < -1) | (instances >= k)).any() or (instances[:, 0] == instances[:, 1]).any():
+        problems.append(f"events name instances outside [-1, {k - 1}] or a body with itself")
+    frames = np.array([e["frame"] for e in events], np.float64)
+    if ((frames < -1) | (frames > t)).any():
+        problems.append(f"events have frames outside the simulated [-1, {t}]")
+    if any(not e["force"] > 0 for e in events):
+        problems.append("events have a normal force <= 0")
+    normals = np.array([e["contact_normal"] for e in events], np.float64).reshape(-1, 3)
+    if events and np.abs(np.linalg.norm(normals, axis=-1) - 1).max() > 1e-3:
+        problems.append("events have contact normals that are not unit vectors")
     return problems
 
 

@@ -4,8 +4,9 @@ Two jobs, each streaming scene by scene through `dataset_check.iter_dataset` (me
 scene):
 - `build_dataset_report`: counts and distributions (objects per scene, visible and moving
   fractions, camera speed, blur, track lengths) as plots, plus a contact sheet and a video of the
-  first `samples` scenes (config key) showing RGB with tracks | depth | segmentation | flow, tied together
-  by `index.html`.
+  first `samples` scenes (config key) showing RGB with tracks (and the objects' 2-D boxes) |
+  depth | segmentation | flow | normals | object coordinates (the layers a scene has), tied
+  together by `index.html`.
 - `build_scene_report`: one scene in detail (every frame, object table, per-track curves) and its
   validation (`dataset_check.validate_scene`).
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -82,8 +84,38 @@ def summarise(values: np.ndarray) -> dict[str, float]:
 # --------------------------------------------------------------------------------------------
 
 
+def colorize_normal(normal: np.ndarray) -> np.ndarray:
+    """Unit normals (...,3) -> RGB uint8 (...,3): (n + 1) / 2 * 255 per axis (x red, y green,
+    z blue; Kubric's normal PNG mapping at 8 bits), so the floor (+z) is light blue."""
+    return np.round((np.clip(normal, -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
+
+
+def colorize_coordinates(coordinates: np.ndarray) -> np.ndarray:
+    """Object coordinates (...,3) in [0,1] -> RGB uint8 (...,3): c * 255 (x red, y green, z
+    blue; the background's 0 is black)."""
+    return np.round(np.clip(coordinates, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def draw_boxes(video: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """`video` uint8 (T,H,W,3) with the objects' 2-D boxes (K,T,4) [ymin, xmin, ymax, xmax]
+    (fractions of H and W, NaN where hidden) drawn as one-pixel outlines in each object's
+    segmentation colour (object k has segment k + 1)."""
+    video = np.ascontiguousarray(video).copy()
+    height, width = video.shape[1:3]
+    palette = draw.segment_palette(len(boxes) + 1)
+    scale = np.array([height, width, height, width], np.float64)
+    for k, object_boxes in enumerate(boxes):
+        color = tuple(int(c) for c in palette[k + 1])
+        for t, box in enumerate(object_boxes):
+            if np.isfinite(box).all():  # pixel edges -> the outermost pixels' indices
+                y0, x0, y1, x1 = np.round(box * scale).astype(int) - [0, 0, 1, 1]
+                cv2.rectangle(video[t], (int(x0), int(y0)), (int(x1), int(y1)), color, 1)
+    return video
+
+
 def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
-    """RGB with tracks, depth, segmentation, forward flow as RGB uint8 videos (T,H',W',3).
+    """RGB with tracks (and 2-D boxes), depth, segmentation, forward flow, normals and object
+    coordinates (those the scene has) as RGB uint8 videos (T,H',W',3).
 
     Small scenes are scaled up by an integer factor so the pictures stay legible; tracks are
     moved to the scaled pixel grid (centres at integers: x' = (x + 0.5) f - 0.5).
@@ -92,22 +124,27 @@ def scene_panels(scene: Scene, cfg) -> tuple[list[np.ndarray], list[str]]:
     clip = scene.tracks_time_major()  # tracks (T,N,2), occluded and moving (T,N)
     tracks = geometry.rescale_pixels(clip["tracks"], factor)
     radius = max(1.5, cfg.track_radius * factor * max(scene.image_size))
-    panels = [draw.draw_tracks(draw.upscale(scene.rgb, factor), tracks, ~clip["occluded"],
-                               clip["moving"], radius=radius)]
+    rgb = draw.upscale(scene.rgb, factor)
     labels = ["rgb + tracks"]
+    if scene.instances is not None:
+        rgb = draw_boxes(rgb, scene.instances["bbox_2d"])
+        labels = ["rgb + tracks + boxes"]
+    panels = [draw.draw_tracks(rgb, tracks, ~clip["occluded"], clip["moving"], radius=radius)]
     for name, colorize in (("depth", draw.colorize_depth),
                            ("segmentation", draw.colorize_segmentation),
-                           ("flow_fwd", draw.colorize_flow)):
+                           ("flow_fwd", draw.colorize_flow), ("normal", colorize_normal),
+                           ("object_coordinates", colorize_coordinates)):
         value = getattr(scene, name)
         if value is not None:
             panels.append(draw.upscale(colorize(value), factor))
             labels.append(name)
-    if labels[-1] == "flow_fwd":  # frame T-1 has no next frame: grey, and said so on the frame
-        panels[-1] = panels[-1].copy()
-        last = np.full_like(panels[-1][-1], 128)
+    if "flow_fwd" in labels:  # frame T-1 has no next frame: grey, and said so on the frame
+        flow = labels.index("flow_fwd")
+        panels[flow] = panels[flow].copy()
+        last = np.full_like(panels[flow][-1], 128)
         middle = last.shape[0] // 2 - 12  # below the panel's own label
         last[middle:] = draw.label_image(last[middle:], "no flow: last frame")
-        panels[-1][-1] = last
+        panels[flow][-1] = last
     return panels, labels
 
 
