@@ -173,7 +173,11 @@ def write_scene(scene: Scene, folder: Path, name: str) -> None:
     relabel = np.zeros(len(scene.objects) + 1, np.uint8)
     relabel[order + 1] = np.arange(1, len(order) + 1)
     segmentation = relabel[scene.segmentation]
-    palette = hls_palette(int(segmentation.max()) + 1).tobytes()
+    # Kubric's palette, padded to 256 entries: PIL writes a shorter one with fewer bits per pixel,
+    # which Kubric's read_png (8 or 16 bits only) refuses
+    palette = np.zeros((256, 3), np.uint8)
+    colours = hls_palette(int(segmentation.max()) + 1)
+    palette[:len(colours)] = colours
     depth = euclidean_range(scene.depth, scene.intrinsics)
     forward, forward_range = encode_flow(scene.flow_fwd[..., ::-1])  # (dx, dy) -> (drow, dcol)
     backward, backward_range = encode_flow(-scene.flow_bwd[..., ::-1])  # motion t-1 -> t
@@ -184,7 +188,7 @@ def write_scene(scene: Scene, folder: Path, name: str) -> None:
         _png(folder / f"rgba_{t:05d}.png", np.concatenate([scene.rgb[t], alpha], axis=-1))
         Image.fromarray(depth[t]).save(folder / f"depth_{t:05d}.tiff")
         image = Image.fromarray(segmentation[t])
-        image.putpalette(palette)
+        image.putpalette(palette.tobytes())
         image.save(folder / f"segmentation_{t:05d}.png")
         _png(folder / f"forward_flow_{t:05d}.png", forward[t])
         _png(folder / f"backward_flow_{t:05d}.png", backward[t])
