@@ -7,7 +7,7 @@ TORCH ?= torch==2.13.0
 BIN := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: install demo test readme-pictures clean
+.PHONY: install browser demo test readme-pictures clean
 
 install: $(VENV)/.installed
 
@@ -20,13 +20,29 @@ $(VENV)/.installed: pyproject.toml setup.py
 demo: install
 	$(BIN)/c4d demo
 
-test: install
+# Headless Chromium for the browser tests (tests/test_view.py) and `c4d view --screenshot`: found
+# on PATH, else installed from Debian's packages where this is root with apt-get; where neither
+# works those tests are skipped and say why.
+BROWSERS := chromium chromium-browser google-chrome google-chrome-stable
+browser:
+	@for b in $(BROWSERS); do command -v $$b >/dev/null 2>&1 && { echo "browser: $$(command -v $$b)"; exit 0; }; done; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+		(apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) >/dev/null \
+			&& echo "browser: installed $$(command -v chromium)" && exit 0; \
+	fi; \
+	echo "browser: no Chromium found or installed (sudo apt-get install chromium); the browser tests will be skipped"
+
+test: install browser
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-# The README's pictures from the current demo (all of its first reconstructed val scene).
-readme-pictures: install
+# The README's pictures from the current demo (all of its first reconstructed val scene); the
+# 4D view is drawn by `c4d view --screenshot` (headless Chromium, as the browser tests draw it).
+DEMO_RECON := demo_out/reconstruct/scene-000/c4d
+DEMO_TRUTH := demo_out/data/val/movi-e
+readme-pictures: install browser
 	$(BIN)/c4d demo --out demo_out
 	cp demo_out/pictures/readme/*.png docs/images/
+	$(BIN)/c4d view $(DEMO_RECON) --gt $(DEMO_TRUTH) --scene-index 0 --screenshot docs/images/view_4d.png --size 1200x720
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -182,15 +182,15 @@ class Demo:
         return {"dataset_report": str(folder / "dataset" / "index.html"),
                 "reconstruction_report": str(folder / "reconstruction" / "index.html"),
                 "track_overlay": str(folder / "tracks" / "overlay.mp4"),
-                "readme_pictures": f"{readme}/{{dataset_sheet,tracks,trajectory,scene_ply}}.png",
+                "readme_pictures": f"{readme}/{{dataset_sheet,tracks,trajectory}}.png",
                 "scene": f"{self.val_dirs[r.preset]} #0 (the first reconstructed scene)"}
 
 
 def readme_pictures(pictures: Path) -> Path:
-    """The README's four pictures, all of the first reconstructed val scene, into
-    `pictures/readme/` (`cp OUT/pictures/readme/*.png docs/images/` updates the README): its
-    contact sheet, three frames of the track overlay (first, middle, and the frame with the most
-    points predicted moving), the camera trajectory and the scene.ply rendering."""
+    """The README's pictures of the first reconstructed val scene, into `pictures/readme/`
+    (`make readme-pictures` copies them to docs/images/ and adds the 4D view, drawn by `c4d view
+    --screenshot`): its contact sheet, three frames of the track overlay (first, middle, and the
+    frame with the most points predicted moving) and the camera trajectory."""
     from c4d_core.draw import side_by_side
     from c4d_core.video import read_video, write_image
 
@@ -199,7 +199,6 @@ def readme_pictures(pictures: Path) -> Path:
     sheet = sorted((pictures / "dataset" / "scenes").glob("*/sheet.png"))[0]  # the first val scene
     shutil.copyfile(sheet, out / "dataset_sheet.png")
     shutil.copyfile(pictures / "reconstruction" / "trajectory.png", out / "trajectory.png")
-    shutil.copyfile(pictures / "reconstruction" / "ply.png", out / "scene_ply.png")
     overlay = read_video(pictures / "tracks" / "overlay.mp4")
     with np.load(pictures / "tracks" / "tracks.npz") as tracks:
         moving = ((tracks["moving"] > 0.5) & tracks["visible"]).sum(axis=1)  # (T,)

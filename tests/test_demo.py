@@ -27,7 +27,7 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
     assert (demo_out / "pictures" / "tracks" / "overlay.mp4").stat().st_size > 0
     readme = demo_out / "pictures" / "readme"
     assert sorted(p.name for p in readme.glob("*.png")) == [
-        "dataset_sheet.png", "scene_ply.png", "tracks.png", "trajectory.png"]
+        "dataset_sheet.png", "tracks.png", "trajectory.png"]
     assert "trained 60 steps (overrides: `loss.mobility_pos_weight=1.0`)" in summary
     assert "the track overlay and the reconstruction report show" in summary
 

@@ -4,7 +4,8 @@
 (the wheel from the sdist, so both must carry the presets), installs the wheel into a new venv
 (torch pinned first, as the Makefile does; the other dependencies from the configured package
 index or pip's cache) and, from a folder outside the checkout, runs `c4d --help`, `c4d config
-show`, a one-scene `c4d datagen` of every preset, and `c4d demo --quick`.
+show`, a one-scene `c4d datagen` of every preset, `c4d demo --quick` and `c4d view --save` of
+its reconstruction (the viewer's assets are package data).
 """
 
 import os
@@ -66,3 +67,9 @@ def test_wheel_in_a_fresh_venv_runs_from_outside_the_checkout(tmp_path):
         assert (elsewhere / preset / "train-000000.tar").is_file()
     _run([c4d, "demo", "--quick", "--out", elsewhere / "demo"], elsewhere, env, timeout=1500)
     assert (elsewhere / "demo" / "summary.md").is_file()
+    # the viewer page, with the three.js the wheel carries as package data
+    _run([c4d, "view", elsewhere / "demo" / "reconstruct" / "scene-000" / "c4d", "--save",
+          elsewhere / "view.html"], elsewhere, env)
+    page = (elsewhere / "view.html").read_text()
+    assert '<script type="importmap">{"imports": {"three": "data:text/javascript;base64,' in page
+    assert 'id="c4d-payload"' in page and len(page) > 700_000

@@ -248,17 +248,16 @@ def _high_pipe() -> tuple[int, int]:
             os.close(fd)
 
 
-def screenshot_file(html: Path, png: Path, frame: int | None, width: int, height: int) -> dict:
-    """Open the viewer page `html` in headless Chromium, show `frame` (None: the page's first),
-    and write the viewport to `png`; returns the page's stats. Errors the page reports are one
-    `UserError`."""
+def screenshot_file(html: Path, png: Path, frame: int, width: int, height: int) -> dict:
+    """Open the viewer page `html` in headless Chromium with a `width` x `height` viewport, show
+    `frame` and write the viewport to `png`; returns the page's stats. An error the page reports
+    is one `UserError`."""
     from c4d_core.video import write_image
 
     with Browser(width, height) as browser:
         page = browser.open(Path(html).resolve().as_uri())
         wait_for_view(page)
-        if frame is not None:
-            page.evaluate(f"c4dView.setFrame({int(frame)})")
+        page.evaluate(f"c4dView.setFrame({int(frame)})")
         page.next_frames()
         image = page.screenshot()
         errors = page.errors()

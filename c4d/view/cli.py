@@ -67,7 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--screenshot", type=Path, metavar="FILE.png",
                         help="draw the page in headless Chromium and write a PNG (needs Chromium)")
     parser.add_argument("--frame", type=int, metavar="T",
-                        help="--screenshot: the frame shown (0-based; default the first)")
+                        help="--screenshot: the frame shown (0-based; default the last, with "
+                             "the whole of every track drawn)")
     parser.add_argument("--size", type=_size, default=(1280, 800), metavar="WxH",
                         help="--screenshot: the picture's size in pixels (default 1280x800)")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT,
@@ -180,6 +181,7 @@ def run(args) -> int:
 
         with tempfile.TemporaryDirectory(prefix="c4d-view-") as folder:
             html = args.save or write_bytes(Path(folder) / "view.html", page)
-            screenshot_file(html, args.screenshot, args.frame, *args.size)
+            frame = view.num_frames - 1 if args.frame is None else args.frame
+            screenshot_file(html, args.screenshot, frame, *args.size)
         log.info("wrote %s", args.screenshot)
     return 0

@@ -76,8 +76,10 @@ function cameraGroup(cameras, size, depth, color) {
 }
 
 function main() {
+  const timing = { start: performance.now() };
   const header = JSON.parse(document.getElementById('c4d-header').textContent);
   const arrays = typedArrays(header, decodeBase64(document.getElementById('c4d-payload').textContent));
+  timing.decoded = performance.now();
   const T = header.frames;
   document.getElementById('title').textContent = header.title;
   const notes = document.getElementById('notes');
@@ -98,21 +100,32 @@ function main() {
   const scene = new THREE.Scene();
   scene.background = new THREE.Color(COLORS.background);
 
-  // Points: all frames in one pair of attributes, each frame a draw range (static, then dynamic).
-  const position = new THREE.Float16BufferAttribute(arrays.positions, 3);
-  const color = new THREE.Uint8BufferAttribute(arrays.colors, 3, true);
+  // Points: each frame's static and dynamic points as two geometries on views of the payload,
+  // made (and sent to the GPU) when the frame is first shown, so opening a long video is quick.
   const camera = new THREE.PerspectiveCamera(50, container.clientWidth / container.clientHeight, 1e-3, 1e5);
   // three.js scales a point by (canvas height / 2) / depth; a disc 1.3 pixel pitches wide.
   const worldSize = 1.3 * header.point_size / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
   const disc = discTexture();
   const staticMaterial = new THREE.PointsMaterial({ size: worldSize, vertexColors: true, map: disc, alphaTest: 0.5 });
   const dynamicMaterial = new THREE.PointsMaterial({ size: worldSize, color: COLORS.moving, map: disc, alphaTest: 0.5 });
+  const frameGeometries = new Map();
+  function pointGeometries(t) {
+    if (!frameGeometries.has(t)) {
+      const p = header.points, start = p.start[t], ns = p.static[t], nd = p.dynamic[t];
+      frameGeometries.set(t, [[start, ns], [start + ns, nd]].map(([first, count]) => {
+        const geometry = new THREE.BufferGeometry();
+        geometry.setAttribute('position', new THREE.Float16BufferAttribute(
+          arrays.positions.subarray(3 * first, 3 * (first + count)), 3));
+        geometry.setAttribute('color', new THREE.Uint8BufferAttribute(
+          arrays.colors.subarray(3 * first, 3 * (first + count)), 3, true));
+        return geometry;
+      }));
+    }
+    return frameGeometries.get(t);
+  }
   const cloud = new THREE.Group();
   const parts = [staticMaterial, dynamicMaterial].map(material => {
-    const geometry = new THREE.BufferGeometry();
-    geometry.setAttribute('position', position);
-    geometry.setAttribute('color', color);
-    const points = new THREE.Points(geometry, material);
+    const points = new THREE.Points(new THREE.BufferGeometry(), material);
     points.frustumCulled = false;
     cloud.add(points);
     return points;
@@ -166,9 +179,8 @@ function main() {
   function render() { renderer.render(scene, camera); }
 
   function update() {
-    const p = header.points, start = p.start[frame], ns = p.static[frame], nd = p.dynamic[frame];
-    parts[0].geometry.setDrawRange(start, ns);
-    parts[1].geometry.setDrawRange(start + ns, nd);
+    [parts[0].geometry, parts[1].geometry] = pointGeometries(frame);
+    const [ns, nd] = parts.map(part => part.geometry.attributes.position.count);
     dynamicMaterial.vertexColors = !show.movingRed;
     dynamicMaterial.color.set(show.movingRed ? COLORS.moving : 0xffffff);
     dynamicMaterial.needsUpdate = true;
@@ -256,8 +268,9 @@ function main() {
     render();
   });
 
-  window.c4dView = { stats, setFrame, play, pause, header };
+  window.c4dView = { stats, setFrame, play, pause, header, timing };
   setFrame(0);
+  timing.drawn = performance.now();
   root.dataset.c4dState = 'ready';
   document.title = header.title;
 }
