@@ -205,10 +205,12 @@ def test_kubric_export_is_kubric_s_worker_layout_of_our_scenes(full, scenes, tmp
             for t in range(s.num_frames):
                 uv = kubric_project(inst["positions"][t], cam["positions"][t], cam["quaternions"][t], kn)
                 assert np.allclose(inst["image_positions"][t], uv, atol=1e-4)
-        # collisions: instances as segmentation ids - 1, -1 for the floor and unseen objects
-        assert len(k["events"]["collisions"]) == len(s.events)
+        # collisions: instances as segmentation ids - 1, -1 for the floor and unseen objects;
+        # frames from 1 at the first rendered frame
+        assert len(k["events"]["collisions"]) == len(s.events) > 0
         for theirs, event in zip(k["events"]["collisions"], s.events):
             assert theirs["instances"] == [order.index(i) if i in order else -1 for i in event["instances"]]
+            assert np.isclose(theirs["frame"], event["frame"] + 1)
             assert np.allclose(theirs["image_position"],
                                (np.asarray(event["image_position"]) + 0.5) / [w, h], atol=1e-6)
 
