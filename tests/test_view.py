@@ -136,6 +136,7 @@ def test_ground_truth_is_drawn_beside_the_sim3_aligned_reconstruction(tmp_path, 
     view = scene_data.from_reconstruction(recon_dir, gt=box_scene)
     np.testing.assert_allclose(view.cam_to_world, box_scene.cam_to_world, atol=1e-4)  # same poses
     np.testing.assert_allclose(view.gt_cam_to_world, box_scene.cam_to_world, atol=1e-6)
+    np.testing.assert_allclose(view.gt_intrinsics, box_scene.intrinsics, atol=1e-4)  # same size
     # a reconstruction 2.5x larger, turned and moved, comes back onto the ground truth
     moved = tmp_path / "moved"
     shutil.copytree(recon_dir, moved)

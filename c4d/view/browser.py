@@ -168,10 +168,16 @@ class Page:
         return self.browser.send(method, params, self.session)
 
     def navigate(self, url: str) -> None:
+        """Open `url` in this tab and wait for its load event."""
+        loads = len(self.events("Page.loadEventFired"))
         reply = self.send("Page.navigate", {"url": url})
         if reply.get("errorText"):
             raise UserError(f"Chromium cannot open {url}: {reply['errorText']}")
-        self.wait_for("document.readyState === 'complete'")
+        deadline = time.monotonic() + self.browser.timeout
+        while len(self.events("Page.loadEventFired")) == loads:
+            if time.monotonic() > deadline:
+                raise UserError(f"{url} did not finish loading within {self.browser.timeout:.0f} s")
+            time.sleep(0.05)
 
     def evaluate(self, expression: str, await_promise: bool = False) -> Any:
         """The value of a JavaScript expression (JSON-serialisable values come back as Python's);

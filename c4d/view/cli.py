@@ -14,7 +14,6 @@ import argparse
 import errno
 import logging
 import webbrowser
-from functools import partial
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -105,11 +104,7 @@ def load_view(args) -> scene_data.ViewScene:
 
 
 class _PageHandler(BaseHTTPRequestHandler):
-    """Answers GET / (and /index.html) with the page; anything else is 404."""
-
-    def __init__(self, *args, page: bytes, **kwargs):
-        self.page = page
-        super().__init__(*args, **kwargs)
+    """Answers GET / (and /index.html) with the server's `page`; anything else is 404."""
 
     def do_GET(self):  # noqa: N802 -- the name http.server calls
         if self.path.split("?")[0] not in ("/", "/index.html"):
@@ -117,25 +112,30 @@ class _PageHandler(BaseHTTPRequestHandler):
             return
         self.send_response(200)
         self.send_header("Content-Type", "text/html; charset=utf-8")
-        self.send_header("Content-Length", str(len(self.page)))
+        self.send_header("Content-Length", str(len(self.server.page)))
         self.end_headers()
-        self.wfile.write(self.page)
+        self.wfile.write(self.server.page)
 
     def log_message(self, format, *args):  # noqa: A002 -- http.server's signature
         log.debug("%s %s", self.address_string(), format % args)
 
 
-def serve(page: bytes, port: int, open_browser: bool) -> None:
-    """Serve `page` on 127.0.0.1:`port` until Ctrl-C; a port in use is one `UserError`."""
+def open_server(port: int) -> ThreadingHTTPServer:
+    """A server bound to 127.0.0.1:`port` (0: any free port), before any work is done; a port in
+    use is one `UserError`. Set its `page` (bytes) before `serve`."""
     if not 0 <= port <= 65535:
         raise UserError(f"--port must be 0..65535, got {port}")
     try:
-        server = ThreadingHTTPServer(("127.0.0.1", port), partial(_PageHandler, page=page))
+        return ThreadingHTTPServer(("127.0.0.1", port), _PageHandler)
     except OSError as exc:
         if exc.errno == errno.EADDRINUSE:
             raise UserError(f"port {port} is in use on 127.0.0.1; choose another with --port "
                             "(--port 0 picks a free one)") from None
         raise UserError(f"cannot serve on 127.0.0.1:{port}: {exc.strerror or exc}") from None
+
+
+def serve(server: ThreadingHTTPServer, open_browser: bool) -> None:
+    """Serve the server's page until Ctrl-C, printing its address first."""
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     print(f"serving the view on {url} (Ctrl-C to stop)", flush=True)
     if open_browser:
@@ -144,8 +144,6 @@ def serve(page: bytes, port: int, open_browser: bool) -> None:
         server.serve_forever()
     except KeyboardInterrupt:
         print("stopped", flush=True)
-    finally:
-        server.server_close()
 
 
 def run(args) -> int:
@@ -156,19 +154,27 @@ def run(args) -> int:
     if args.screenshot is not None:
         from c4d.view.browser import find_browser
 
+        if args.screenshot.suffix.lower() != ".png":
+            raise UserError(f"--screenshot {args.screenshot}: give a .png file name")
         find_browser()  # no browser: said before the scene is read
-    view = load_view(args)
-    if args.frame is not None and not 0 <= args.frame < view.num_frames:
-        raise UserError(f"--frame must be 0..{view.num_frames - 1}, got {args.frame}")
-    if args.max_tracks == 0:
-        view.tracks = None
-    payload = scene_data.encode(view, args.stride, args.max_points, args.max_tracks)
-    page = build_page(payload).encode("utf-8")
-    points = sum(payload.header["points"]["static"]) + sum(payload.header["points"]["dynamic"])
-    log.info("%d frames, %d points, page of %.1f MB", view.num_frames, points, len(page) / 1e6)
-    if args.save is None and args.screenshot is None:
-        serve(page, args.port, not args.no_browser)
-        return 0
+    server = open_server(args.port) if args.save is None and args.screenshot is None else None
+    try:
+        view = load_view(args)
+        if args.frame is not None and not 0 <= args.frame < view.num_frames:
+            raise UserError(f"--frame must be 0..{view.num_frames - 1}, got {args.frame}")
+        if args.max_tracks == 0:
+            view.tracks = None
+        payload = scene_data.encode(view, args.stride, args.max_points, args.max_tracks)
+        page = build_page(payload).encode("utf-8")
+        points = sum(payload.header["points"]["static"]) + sum(payload.header["points"]["dynamic"])
+        log.info("%d frames, %d points, page of %.1f MB", view.num_frames, points, len(page) / 1e6)
+        if server is not None:
+            server.page = page
+            serve(server, not args.no_browser)
+            return 0
+    finally:
+        if server is not None:
+            server.server_close()
     from c4d_core.files import write_bytes
 
     if args.save is not None:

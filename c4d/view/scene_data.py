@@ -51,6 +51,7 @@ class ViewScene:
     tracks_valid: np.ndarray | None = None  # bool (T,N)
     tracks_moving: np.ndarray | None = None  # bool (T,N) True = moving (None: unknown)
     gt_cam_to_world: np.ndarray | None = None  # float (T,4,4) ground truth, in the same frame
+    gt_intrinsics: np.ndarray | None = None  # float (T,3,3) ground truth, for these H x W pixels
     timestamps: np.ndarray | None = None  # float (T,) seconds (None: unknown)
     notes: list[str] = field(default_factory=list)  # lines shown under the title
 
@@ -110,13 +111,16 @@ def from_reconstruction(folder: str | Path, min_confidence: float = DEFAULT_MIN_
             moving = probability > 0.5
     notes = [f"{len(points)} frames of {points.shape[2]}x{points.shape[1]}; points with "
              f"confidence >= {min_confidence:g}; red: the motion masks' dynamic pixels"]
-    gt_poses = None
+    gt_poses = gt_intrinsics = None
     if gt is not None:
         from c4d.inspect.recon_report import ground_truth_trajectory
         from c4d_pipeline.eval_recon import check_same_scene, scene_frame_indices
+        from c4d_pipeline.ground_truth import resize_intrinsics
 
-        check_same_scene(recon, gt, scene_frame_indices(recon, gt.num_frames)[0])
+        indices = scene_frame_indices(recon, gt.num_frames)[0]
+        check_same_scene(recon, gt, indices)
         aligned, gt_poses, metrics = ground_truth_trajectory(recon, gt)
+        gt_intrinsics = resize_intrinsics(gt.intrinsics[indices], gt.image_size, points.shape[1:3])
         scale, rotation, translation = _similarity(cam_to_world, aligned, metrics["sim3_scale"])
         points = scale * points @ rotation.T + translation
         if tracks is not None:
@@ -129,7 +133,7 @@ def from_reconstruction(folder: str | Path, min_confidence: float = DEFAULT_MIN_
         title=f"c4d view: {folder}", colors=recon.frames, points=points, keep=keep,
         dynamic=recon.masks, cam_to_world=cam_to_world, intrinsics=recon.intrinsics,
         tracks=tracks, tracks_valid=valid, tracks_moving=moving, gt_cam_to_world=gt_poses,
-        timestamps=recon.timestamps, notes=notes)
+        gt_intrinsics=gt_intrinsics, timestamps=recon.timestamps, notes=notes)
 
 
 def _similarity(pred: np.ndarray, aligned: np.ndarray, scale: float) -> tuple[float, np.ndarray, np.ndarray]:
@@ -210,8 +214,9 @@ def encode(view: ViewScene, stride: int = DEFAULT_STRIDE, max_points: int = DEFA
     grid_colors = view.colors[:, ::stride, ::stride]
     grid_dynamic = None if view.dynamic is None else view.dynamic[:, ::stride, ::stride]
     chosen = [frame_selection(k, stride, max_points) for k in view.keep]
-    centre = np.median(np.concatenate([grid_points[t].reshape(-1, 3)[c] for t, c in enumerate(chosen)]
-                                      or [view.cam_to_world[:, :3, 3]]), axis=0)
+    drawn = [grid_points[t].reshape(-1, 3)[c] for t, c in enumerate(chosen) if len(c)]
+    centre = (np.median(np.concatenate(drawn), axis=0) if drawn
+              else view.cam_to_world[:, :3, 3].mean(axis=0))  # no point drawn: the cameras'
     positions, colors, counts = [], [], {"start": [], "static": [], "dynamic": []}
     for t, selected in enumerate(chosen):
         xyz = grid_points[t].reshape(-1, 3)[selected] - centre
@@ -239,7 +244,7 @@ def encode(view: ViewScene, stride: int = DEFAULT_STRIDE, max_points: int = DEFA
         "timestamps": None if _fps(view.timestamps) is None else np.round(view.timestamps, 4).tolist(),
         "cameras": _cameras(view.cam_to_world, view.intrinsics, centre),
         "gt_cameras": None if view.gt_cam_to_world is None
-        else _cameras(view.gt_cam_to_world, view.intrinsics, centre),
+        else _cameras(view.gt_cam_to_world, view.gt_intrinsics, centre),
         "frustum_depth": _frustum_depth(view, centre),
         "tracks": tracks_header,
     }
