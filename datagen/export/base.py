@@ -12,6 +12,7 @@ is written. A file format (tapvid) writes one file atomically.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import time
@@ -22,7 +23,7 @@ from typing import Any, Callable, Iterator
 from tqdm import tqdm
 
 from c4d_core.errors import UserError
-from c4d_core.files import atomic_path, make_folder, remove_empty_folders, staged_folder, write_json
+from c4d_core.files import atomic_path, remove_empty_folders, staged_folder, write_json
 from datagen.scene import Scene
 from datagen.shards import decode_scene, iter_samples, list_shards, scenes_in_shard
 
@@ -92,37 +93,63 @@ def check_layers(fmt: ExportFormat, scene: Scene, where: str) -> None:
 
 
 class _Scenes:
-    """The scenes of DATA in reading order, each checked to be of one dataset and to have the
-    layers of the format; `skip(name)` says which scenes not to decode (read, not decoded)."""
+    """The scenes of DATA in reading order, each checked to be of one dataset (that of the first
+    scene: `source`) and to have the layers of the format."""
 
     def __init__(self, fmt: ExportFormat, data: str | Path):
         self.fmt, self.data = fmt, data
         self.fields = None if fmt.fields is None else (*fmt.fields, "meta")
         self.shards = list_shards(data)
-        self.source: dict[str, Any] | None = None
         counts = [scenes_in_shard(shard) for shard in self.shards]
         self.total = None if None in counts else sum(counts)
+        self.source = self._source(self.shards[0])
+        for shard in self.shards[1:]:  # one dataset: checked before anything is written
+            self._check(self._source(shard), f"the first scene of {shard}")
+        self.skipped = 0
 
-    def first_source(self) -> dict[str, Any]:
-        """The identity of DATA: that of its first scene (only its meta is decoded)."""
-        for sample in iter_samples(self.shards[0], fields=("meta",)):
+    @staticmethod
+    def _source(shard: Path) -> dict[str, Any]:
+        """The dataset identity of the first scene of `shard` (only its meta is decoded)."""
+        for sample in iter_samples(shard, fields=("meta",)):
             return source_of(decode_scene(sample, fields=("meta",)).meta)
-        raise UserError(f"{self.shards[0]} holds no scene; rerun `c4d datagen`")
+        raise UserError(f"{shard} holds no scene; rerun `c4d datagen`")
 
-    def samples(self) -> Iterator[dict[str, Any]]:
-        for shard in self.shards:
-            yield from iter_samples(shard, self.fields)
-
-    def decode(self, sample: dict[str, Any]) -> Scene:
-        scene = decode_scene(sample, self.fields)
-        where = f"scene {sample['__key__']!r} of {sample['__url__']}"
-        source = source_of(scene.meta)
-        self.source = self.source or source
+    def _check(self, source: dict[str, Any], where: str) -> None:
         if source != self.source:
             raise UserError(f"{self.data} mixes datasets: {where} is of {describe(source)}, the "
-                            f"scenes before it of {describe(self.source)}; export one dataset at a time")
+                            f"first scene of {describe(self.source)}; export one dataset at a time")
+
+    def pending(self, done: set[str] = frozenset()) -> Iterator[tuple[str, Scene]]:
+        """(name, scene) of every scene whose name is not in `done`, decoded and checked; the
+        others are read but not decoded, and counted in `skipped`."""
+        for shard in self.shards:
+            for sample in iter_samples(shard, self.fields):
+                name = scene_name(sample["__key__"])
+                if name in done:
+                    self.skipped += 1
+                else:
+                    yield name, self._decode(sample)
+
+    def _decode(self, sample: dict[str, Any]) -> Scene:
+        scene = decode_scene(sample, self.fields)
+        where = f"scene {sample['__key__']!r} of {sample['__url__']}"
+        self._check(source_of(scene.meta), where)
         check_layers(self.fmt, scene, where)
         return scene
+
+
+def _progress(fmt: ExportFormat, scenes: Iterator[tuple[str, Scene]], total: int | None,
+              done: int) -> Iterator[tuple[str, Scene]]:
+    """`scenes` with a progress bar (a scene counts once the consumer asks for the next), which
+    opens only once the first scene is decoded and checked: a refused dataset prints one line."""
+    first = next(scenes, None)
+    if first is None:
+        return
+    with tqdm(total=total, initial=done, unit="scene", desc=f"export {fmt.name}",
+              dynamic_ncols=True) as bar:
+        for item in itertools.chain([first], scenes):
+            yield item
+            bar.update()
 
 
 def _read_record(folder: Path) -> dict[str, Any] | None:
@@ -133,16 +160,19 @@ def _read_record(folder: Path) -> dict[str, Any] | None:
     return record if isinstance(record, dict) else None
 
 
-def _claim_folder(fmt: ExportFormat, out: Path, source: dict[str, Any]) -> None:
-    """Refuse `out` unless it is missing, empty, or holds only scene folders (finished or partial)
-    of a `fmt` export of the dataset `source`."""
+def _claim_folder(fmt: ExportFormat, out: Path, source: dict[str, Any]) -> set[str]:
+    """The names of the finished scenes in `out`; a UserError unless `out` is missing, empty, or
+    holds only scene folders (finished or partial) of a `fmt` export of the dataset `source`."""
     if out.exists() and not out.is_dir():
         raise UserError(f"{out} is a file; the {fmt.name} export writes a folder of scene folders: "
                         "choose a new or empty folder")
+    finished = set()
     for entry in sorted(out.iterdir()) if out.is_dir() else ():
         name = entry.name.removesuffix(PARTIAL)
         record = _read_record(entry) if entry.is_dir() and name.isdigit() else None
         if record == {"format": fmt.name, "source": source, "scene": name}:
+            if name == entry.name:
+                finished.add(name)  # complete: renamed into place as a whole
             continue  # a scene of this export, finished or partial
         if record is None and entry.name.endswith(PARTIAL) and entry.is_dir() and not any(entry.iterdir()):
             continue  # a partial scene killed before its first file
@@ -152,37 +182,28 @@ def _claim_folder(fmt: ExportFormat, out: Path, source: dict[str, Any]) -> None:
                 f"{entry.name}, which no {fmt.name} export writes")
         raise UserError(f"{out} is not empty and is not a {fmt.name} export of this dataset "
                         f"({describe(source)}): it holds {what}; choose a new or empty folder")
+    return finished
 
 
 def export_folders(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, int]:
     """Export every scene of `data` into `out/NAME/`, skipping finished ones; returns (written,
     already there). An OUT this call created is removed again if it fails before a scene is done."""
     scenes = _Scenes(fmt, data)
-    scenes.source = scenes.first_source()
-    _claim_folder(fmt, out, scenes.source)
+    finished = _claim_folder(fmt, out, scenes.source)
     created = not out.exists()
-    make_folder(out)
-    written = skipped = 0
+    written = 0
     try:
-        with tqdm(total=scenes.total, unit="scene", desc=f"export {fmt.name}",
-                  dynamic_ncols=True) as bar:
-            for sample in scenes.samples():
-                name = scene_name(sample["__key__"])
-                if (out / name).is_dir():  # complete: renamed into place as a whole
-                    skipped += 1
-                else:
-                    scene = scenes.decode(sample)
-                    with staged_folder(out / name) as stage:
-                        write_json(stage / RECORD, {"format": fmt.name, "source": scenes.source,
-                                                    "scene": name})
-                        fmt.write_scene(scene, stage, name)
-                    written += 1
-                bar.update()
+        for name, scene in _progress(fmt, scenes.pending(finished), scenes.total, len(finished)):
+            with staged_folder(out / name) as stage:  # creates OUT too
+                write_json(stage / RECORD, {"format": fmt.name, "source": scenes.source,
+                                            "scene": name})
+                fmt.write_scene(scene, stage, name)
+            written += 1
     except BaseException:
         if created:
             remove_empty_folders(out)
         raise
-    return written, skipped
+    return written, scenes.skipped
 
 
 def export_file(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, int]:
@@ -194,16 +215,10 @@ def export_file(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, in
     if out.exists():
         raise UserError(f"{out} already exists; remove it or choose another name")
     scenes = _Scenes(fmt, data)
-
-    def decoded() -> Iterator[tuple[str, Scene]]:
-        with tqdm(total=scenes.total, unit="scene", desc=f"export {fmt.name}",
-                  dynamic_ncols=True) as bar:
-            for sample in scenes.samples():
-                yield scene_name(sample["__key__"]), scenes.decode(sample)
-                bar.update()
-
+    items = _progress(fmt, scenes.pending(), scenes.total, 0)
+    first = next(items)  # decoded and checked before the temporary file (and its folder) is made
     with atomic_path(out) as tmp:
-        written = fmt.write_file(decoded(), tmp)
+        written = fmt.write_file(itertools.chain([first], items), tmp)
     return written, 0
 
 
