@@ -32,14 +32,15 @@ log = logging.getLogger(__name__)
 RECORD = "c4d_export.json"  # in every exported scene folder, written first
 PARTIAL = ".partial"  # staged_folder's suffix for a scene folder being written
 
-# optional layers an export may need -> how a dataset gets them (`c4d datagen` key=value)
+# layers an export may need that a Scene can lack -> how a dataset gets them (`c4d datagen`)
+MADE_BY_EVERY_PRESET = "every preset makes it: regenerate the dataset with `c4d datagen`"
 LAYER_SWITCHES = {
-    "depth": "the default of every preset",
-    "segmentation": "the default of every preset",
-    "flow_fwd": "the default of every preset",
-    "flow_bwd": "the default of every preset",
-    "object_to_world": "the default of every preset",
-    "moving": "the default of every preset",
+    "depth": MADE_BY_EVERY_PRESET,
+    "segmentation": MADE_BY_EVERY_PRESET,
+    "flow_fwd": MADE_BY_EVERY_PRESET,
+    "flow_bwd": MADE_BY_EVERY_PRESET,
+    "object_to_world": MADE_BY_EVERY_PRESET,
+    "moving": MADE_BY_EVERY_PRESET,
     "normal": "layers.normal=true",
     "object_coordinates": "layers.object_coordinates=true",
     "instances": "layers.instances=true",
@@ -54,8 +55,8 @@ class ExportFormat:
     `fields`: the Scene fields it reads (None: all); `layers`: the optional ones of those it cannot
     do without (a scene without one is refused, naming the layer and its `LAYER_SWITCHES` entry).
     A folder format has `write_scene(scene, folder, name)`, writing the scene `name` into its
-    (empty, staged) folder; a file format has `write_file(scenes, path)`, writing every (name, scene) pair of
-    `scenes` into one file.
+    (empty, staged) folder; a file format has `write_file(scenes, path)`, writing every
+    (name, scene) pair of `scenes` into one file and returning how many.
     """
 
     name: str
@@ -85,7 +86,7 @@ def scene_name(key: str) -> str:
 
 def check_layers(fmt: ExportFormat, scene: Scene, where: str) -> None:
     """UserError naming every layer `fmt` needs that `scene` lacks, and how to generate it."""
-    missing = [name for name in fmt.layers if getattr(scene, name, None) is None]
+    missing = [name for name in fmt.layers if getattr(scene, name) is None]
     if missing:
         how = "; ".join(f"{name}: {LAYER_SWITCHES[name]}" for name in missing)
         raise UserError(f"{where} lacks the layer(s) {', '.join(missing)}, which the {fmt.name} "
