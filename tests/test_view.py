@@ -125,7 +125,14 @@ def test_page_data_is_the_reconstruction_after_the_documented_subsample(tmp_path
                 <= 2.0 ** -11 * np.abs(expected - header["centre"]) + 1e-6).all()
         np.testing.assert_array_equal(colors[start:start + count],
                                       recon.frames[t, ::STRIDE, ::STRIDE].reshape(-1, 3)[chosen][order])
-    assert header["tracks"]["until"] == _expected_segments(recon.tracks_valid)
+    valid = _array(header, data, "track_valid").reshape(T, N).astype(bool)
+    np.testing.assert_array_equal(valid, recon.tracks_valid)  # N < --max-tracks: all of them
+    track_points = _array(header, data, "track_points").astype(np.float64).reshape(T, N, 3) + header["centre"]
+    expected = recon.tracks_world[valid]
+    assert (np.abs(track_points[valid] - expected)
+            <= 2.0 ** -11 * np.abs(expected - header["centre"]) + 1e-6).all()
+    moving = _array(header, data, "track_moving").reshape(T, N).astype(bool)
+    np.testing.assert_array_equal(moving, (recon.tracks_2d["moving"] > 0.5) & valid)
     assert len(header["cameras"]["cam_to_world"]) == T and header["gt_cameras"] is None
     # one file: no element loads anything from elsewhere, the scripts come inside it
     assert re.findall(r'<(?:script|link|img|iframe)[^>]*\b(?:src|href)="([^"]*)"', text) == ["data:,"]
@@ -169,7 +176,7 @@ def _drawn_fraction(pixels: np.ndarray) -> float:
     return float((np.abs(pixels - BACKGROUND).max(axis=1) > 30).mean())
 
 
-def _check_view_page(page, frames: tuple[int, int], static, moving, segments, cameras, gt_cameras):
+def _check_view_page(page, frames: tuple[int, int], static, moving, valid, cameras, gt_cameras):
     """Wait for the viewer, then at each of two frames: the counts drawn are the expected ones;
     the canvas is drawn on and differs between them; no error and no request off the page."""
     chromium.wait_for_view(page)
@@ -182,7 +189,8 @@ def _check_view_page(page, frames: tuple[int, int], static, moving, segments, ca
         assert (stats["staticPoints"], stats["dynamicPoints"]) == (static[t], moving[t])
         assert stats["points"] == static[t] + moving[t]
         assert (stats["cameras"], stats["gtCameras"]) == (cameras, gt_cameras)
-        assert stats["trackSegments"] == segments[t]
+        assert stats["trackSegments"] == _expected_segments(valid)[t]
+        assert stats["trackHeads"] == int(valid[t].sum())
         shots.append(_canvas_pixels(page, page.screenshot()))
     assert all(_drawn_fraction(shot) > 0.02 for shot in shots)
     changed = (np.abs(shots[0] - shots[1]).max(axis=1) > 30).mean()
@@ -202,7 +210,7 @@ def test_reconstruction_view_in_chromium(tmp_path, browser, recon_dir, data_dir)
     recon = read_reconstruction(recon_dir)
     static, moving = _expected_counts(recon.confidence >= 1.0, recon.masks)
     page = browser.open(out.as_uri())
-    _check_view_page(page, (0, T - 1), static, moving, _expected_segments(recon.tracks_valid), T, T)
+    _check_view_page(page, (0, T - 1), static, moving, recon.tracks_valid, T, T)
     page.evaluate("document.getElementById('show-cameras').click()")  # the toggles change what is drawn
     page.evaluate("document.getElementById('show-points').click()")
     stats = page.evaluate("c4dView.stats")
@@ -221,7 +229,7 @@ def test_dataset_scene_view_in_chromium(tmp_path, browser, box_scene, data_dir):
     static, moving = _expected_counts(box_scene.depth > 0, ground_truth_motion_masks(box_scene))
     valid = np.isfinite(box_scene.tracks_world).all(-1).T  # (T,N)
     page = browser.open(out.as_uri())
-    _check_view_page(page, (0, T - 1), static, moving, _expected_segments(valid), T, 0)
+    _check_view_page(page, (0, T - 1), static, moving, valid, T, 0)
     assert sum(moving) > 0  # the sliding box, in red
 
 
@@ -240,7 +248,7 @@ def test_served_view_opens_in_chromium(browser, recon_dir):
         recon = read_reconstruction(recon_dir)
         static, moving = _expected_counts(recon.confidence >= 1.0, recon.masks)
         page = browser.open(url.group(0))
-        _check_view_page(page, (1, T - 2), static, moving, _expected_segments(recon.tracks_valid), T, 0)
+        _check_view_page(page, (1, T - 2), static, moving, recon.tracks_valid, T, 0)
     finally:
         process.terminate()
         process.wait(10)

@@ -16,7 +16,7 @@ Within a frame the static points come first, then the dynamic ones.
 The page receives a small JSON header (counts, cameras, view settings) and one binary payload
 (base64 in the page) of typed arrays: point positions as float16 relative to the scene's centre
 (the median of the drawn points; relative precision 2^-11 of the distance to it), point colours
-as uint8 RGB, track segments as float16 pairs and their moving flags as uint8.
+as uint8 RGB, the tracks' positions in every frame as float16 with uint8 validity and moving flags.
 """
 
 from __future__ import annotations
@@ -234,8 +234,8 @@ def encode(view: ViewScene, stride: int = DEFAULT_STRIDE, max_points: int = DEFA
               "colors": np.concatenate(colors).reshape(-1).astype(np.uint8)}
     tracks_header = None
     if view.tracks is not None:
-        arrays["track_segments"], arrays["track_moving"], tracks_header = _track_segments(
-            view, centre, max_tracks)
+        track_arrays, tracks_header = _track_arrays(view, centre, max_tracks)
+        arrays.update(track_arrays)
     header = {
         "title": view.title, "notes": view.notes, "frames": view.num_frames,
         "image_size": list(view.points.shape[1:3]), "stride": stride, "max_points": max_points,
@@ -255,25 +255,19 @@ def encode(view: ViewScene, stride: int = DEFAULT_STRIDE, max_points: int = DEFA
     return Payload(header, bytes(data))
 
 
-def _track_segments(view: ViewScene, centre: np.ndarray, max_tracks: int) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Segments (S*2*3,) float16 from each chosen track's frame t-1 to t (both valid), ordered
-    by t, their moving flags (S,) uint8 (at t), and the header: `until[t]`, the segments ending
-    at frame t or before."""
+def _track_arrays(view: ViewScene, centre: np.ndarray, max_tracks: int) -> tuple[dict, dict]:
+    """The chosen tracks' positions (T*n*3,) float16 relative to the centre, their validity and
+    moving flags (T*n,) uint8, time-major; and the header entry (n, whether moving is known).
+    The page draws a track's segment from frame t-1 to t where both are valid, and its head."""
     chosen = _track_choice(view.tracks_valid, max_tracks)
     tracks = view.tracks[:, chosen] - centre  # (T,n,3)
     valid = view.tracks_valid[:, chosen] & (np.abs(tracks) < FLOAT16_RANGE).all(-1)
     moving = (np.zeros_like(valid) if view.tracks_moving is None
-              else view.tracks_moving[:, chosen])
-    segments, flags, until = [], [], [0]
-    for t in range(1, len(tracks)):
-        both = valid[t - 1] & valid[t]
-        segments.append(np.stack([tracks[t - 1][both], tracks[t][both]], 1))  # (s,2,3)
-        flags.append(moving[t][both])
-        until.append(until[-1] + int(both.sum()))
-    segments = np.concatenate(segments) if segments else np.zeros((0, 2, 3))
-    flags = np.concatenate(flags) if flags else np.zeros(0, bool)
-    return (segments.astype(np.float16).reshape(-1), flags.astype(np.uint8),
-            {"count": len(chosen), "until": until, "has_moving": view.tracks_moving is not None})
+              else view.tracks_moving[:, chosen] & valid)
+    arrays = {"track_points": np.where(valid[..., None], tracks, 0).astype(np.float16).reshape(-1),
+              "track_valid": valid.astype(np.uint8).reshape(-1),
+              "track_moving": moving.astype(np.uint8).reshape(-1)}
+    return arrays, {"count": len(chosen), "has_moving": view.tracks_moving is not None}
 
 
 def _cameras(cam_to_world: np.ndarray, intrinsics: np.ndarray, centre: np.ndarray) -> dict:

@@ -7,8 +7,8 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
 const root = document.documentElement;
-const COLORS = { moving: 0xe53935, static: 0x2f7fff, camera: 0xd0d0d0, current: 0xffd54f,
-                 truth: 0x43d17a, background: 0x15181d };
+const COLORS = { moving: 0xe53935, trackMoving: 0xff9800, trackStatic: 0x29b6f6, camera: 0xd0d0d0,
+                 current: 0xffd54f, truth: 0x43d17a, background: 0x15181d };
 
 function fail(error) {
   root.dataset.c4dState = 'error';
@@ -138,23 +138,45 @@ function main() {
   scene.add(cameras);
   if (truth) scene.add(truth);
   const current = new THREE.LineSegments(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: COLORS.current }));
+  current.geometry.setAttribute('position', new THREE.BufferAttribute(new Float32Array(16 * 3), 3));
   current.frustumCulled = false;
   scene.add(current);
 
-  let tracks = null;
+  // Tracks: one position per track and frame; a segment from t-1 to t where both are valid (all
+  // of them ordered by t, so those up to the current frame are a prefix), and the heads at t.
+  let tracks = null, heads = null;
+  const segmentsUntil = [0], headStart = [], headCount = [];
   if (header.tracks) {
-    const geometry = new THREE.BufferGeometry();
-    geometry.setAttribute('position', new THREE.Float16BufferAttribute(arrays.track_segments, 3));
-    const moving = arrays.track_moving, rgb = new Uint8Array(moving.length * 6);
-    const hot = new THREE.Color(COLORS.moving), cold = new THREE.Color(COLORS.static);
-    moving.forEach((m, i) => {
-      const c = m ? hot : cold;
-      for (let end = 0; end < 2; end++) rgb.set([c.r * 255, c.g * 255, c.b * 255], 6 * i + 3 * end);
-    });
-    geometry.setAttribute('color', new THREE.Uint8BufferAttribute(rgb, 3, true));
-    tracks = new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({ vertexColors: true }));
-    tracks.frustumCulled = false;
-    scene.add(tracks);
+    const n = header.tracks.count, valid = arrays.track_valid, moving = arrays.track_moving;
+    const segments = [], headIndex = [];
+    for (let t = 0; t < T; t++) {
+      for (let i = 0; i < n; i++) {
+        if (t > 0 && valid[(t - 1) * n + i] && valid[t * n + i]) segments.push((t - 1) * n + i, t * n + i);
+      }
+      segmentsUntil.push(segments.length / 2);
+      headStart.push(headIndex.length);
+      for (let i = 0; i < n; i++) if (valid[t * n + i]) headIndex.push(t * n + i);
+      headCount.push(headIndex.length - headStart[t]);
+    }
+    segmentsUntil.shift();  // segmentsUntil[t]: the segments ending at frame t or before
+    const position = new THREE.Float16BufferAttribute(arrays.track_points, 3);
+    const rgb = new Uint8Array(moving.length * 3), hot = new THREE.Color(COLORS.trackMoving), cold = new THREE.Color(COLORS.trackStatic);
+    moving.forEach((m, i) => { const c = m ? hot : cold; rgb.set([c.r * 255, c.g * 255, c.b * 255], 3 * i); });
+    const color = new THREE.Uint8BufferAttribute(rgb, 3, true);
+    const lines = new THREE.BufferGeometry(), dots = new THREE.BufferGeometry();
+    for (const [geometry, index] of [[lines, segments], [dots, headIndex]]) {
+      geometry.setAttribute('position', position);
+      geometry.setAttribute('color', color);
+      geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(index), 1));
+    }
+    // drawn over the points (no depth test), so that a track on a moving object stays visible
+    tracks = new THREE.LineSegments(lines, new THREE.LineBasicMaterial({ vertexColors: true, depthTest: false }));
+    heads = new THREE.Points(dots, new THREE.PointsMaterial({ vertexColors: true, size: 5, sizeAttenuation: false, depthTest: false }));
+    for (const object of [tracks, heads]) {
+      object.frustumCulled = false;
+      object.renderOrder = 1;
+      scene.add(object);
+    }
   }
 
   // The virtual camera: behind and above the first camera, looking at the centre; up is the
@@ -188,12 +210,14 @@ function main() {
     cameras.visible = show.cameras;
     if (truth) truth.visible = show.truth;
     current.visible = show.cameras;
-    current.geometry.setAttribute('position', new THREE.BufferAttribute(
-      frustumPositions(poses[frame], header.cameras.intrinsics[frame], size, 1.3 * depth), 3));
-    const segments = tracks ? header.tracks.until[frame] : 0;
+    current.geometry.attributes.position.array.set(
+      frustumPositions(poses[frame], header.cameras.intrinsics[frame], size, 1.3 * depth));
+    current.geometry.attributes.position.needsUpdate = true;
+    const segments = tracks ? segmentsUntil[frame] : 0;
     if (tracks) {
       tracks.geometry.setDrawRange(0, 2 * segments);
-      tracks.visible = show.tracks;
+      heads.geometry.setDrawRange(headStart[frame], headCount[frame]);
+      tracks.visible = heads.visible = show.tracks;
     }
     Object.assign(stats, {
       frame, frames: T,
@@ -203,6 +227,7 @@ function main() {
       cameras: show.cameras ? header.cameras.cam_to_world.length : 0,
       gtCameras: truth && show.truth ? header.gt_cameras.cam_to_world.length : 0,
       trackSegments: tracks && show.tracks ? segments : 0,
+      trackHeads: tracks && show.tracks ? headCount[frame] : 0,
       tracks: header.tracks ? header.tracks.count : 0,
     });
     const time = header.timestamps ? `, t = ${header.timestamps[frame].toFixed(2)}` : '';
@@ -231,10 +256,10 @@ function main() {
   }
 
   const toggles = document.getElementById('toggles');
-  const keyed = { movingRed: COLORS.moving, truth: COLORS.truth, tracks: COLORS.static };
+  const keyed = { movingRed: [COLORS.moving], truth: [COLORS.truth], tracks: [COLORS.trackStatic, COLORS.trackMoving] };
   for (const [key, text, available] of [['points', 'points', true], ['movingRed', 'dynamic in red', header.has_dynamic],
                                         ['cameras', 'cameras', true], ['truth', 'ground truth', !!truth],
-                                        ['tracks', '3D tracks', !!tracks]]) {
+                                        ['tracks', '3D tracks (static, moving)', !!tracks]]) {
     if (!available) continue;
     const box = document.createElement('input');
     box.type = 'checkbox';
@@ -243,10 +268,10 @@ function main() {
     box.addEventListener('change', () => { show[key] = box.checked; update(); });
     const tag = document.createElement('label');
     tag.htmlFor = box.id;
-    if (keyed[key] !== undefined) {
+    for (const value of keyed[key] || []) {
       const swatch = document.createElement('span');
       swatch.className = 'key';
-      swatch.style.background = '#' + keyed[key].toString(16).padStart(6, '0');
+      swatch.style.background = '#' + value.toString(16).padStart(6, '0');
       tag.appendChild(swatch);
     }
     tag.appendChild(document.createTextNode(text));
