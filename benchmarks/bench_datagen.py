@@ -1,7 +1,10 @@
-"""Scene generation speed: seconds per scene by stage, scenes per hour, peak memory per worker.
+"""Scene generation speed: seconds per scene by stage, scenes per hour, peak memory per worker;
+CPU seconds per scene against other commits, and the cost of the optional layers.
 
     .venv/bin/python benchmarks/bench_datagen.py [--scenes 3] [--presets movi-e movi-f]
         [--resolution 256] [--frames 24] [--workers 2]
+    .venv/bin/python benchmarks/bench_datagen.py --against /tmp/prev [--rounds 5] [--scenes 2]
+    .venv/bin/python benchmarks/bench_datagen.py --against /tmp/old --cli --presets movi-f
 
 For each preset: one warm-up scene (EGL context, first asset loads), then the median over
 `--scenes` scenes of wall seconds per stage (sample, physics, render, labels) and of the whole
@@ -10,6 +13,17 @@ preset (movi-e) in the same run. The lit pass is also timed with pyrender's stoc
 the baseline for datagen's own shaders. With `--workers` > 0, that many processes generate scenes
 in parallel to give scenes per hour with all cores. Encoding is measured by the shard writer's
 benchmark.
+
+`--against TREE...`: source trees of other commits (`git archive REV | tar -x -C TREE`, plus a
+link `TREE/c4d_configs -> configs` for trees whose presets are installed as that package). Each
+round runs every variant once, in a fresh process, in an order that alternates between rounds
+(so a change in the machine's load hits all alike): this tree with the presets as they are,
+this tree with every optional layer on (`layers.*=true`), and each TREE. Reported: the median
+over rounds of CPU seconds per scene and its ratio to the first TREE (the previous commit).
+The process generates `--scenes` scenes after a warm-up scene (`generate_scene`, the same
+indices everywhere). With `--cli` each run is instead a whole `c4d datagen --num-scenes
+SCENES` (default `--workers`, so scenes run in spawned workers, shard writing included), timed
+as the CPU seconds of the command and all its processes.
 """
 
 from __future__ import annotations
@@ -19,25 +33,42 @@ import multiprocessing as mp
 import os
 import resource
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
-from c4d_core.config import load_config
-from datagen import render
-from datagen.assets import load_asset_library
-from datagen.generate import describe_and_simulate, generate_scene
-
 STAGES = ("sample", "physics", "render", "labels")
+ROOT = Path(__file__).resolve().parents[1]
+ALL_LAYERS = ["layers.normal=true", "layers.object_coordinates=true", "layers.instances=true",
+              "layers.events=true"]
 
 
-def preset_config(preset: str, resolution: int, frames: int):
-    return load_config("datagen", preset,
-                       overrides=[f"resolution=[{resolution},{resolution}]", f"frames={frames}"])
+def _load_config(*args, **kwargs):
+    """`load_config` of the tree on the path: c4d.config in trees before the floor package,
+    else c4d_core.config (the `--against` children import whichever tree they run in; the
+    older name is tried first, since c4d_core resolves to this checkout where a tree has none)."""
+    try:
+        from c4d.config import load_config
+    except ImportError:
+        from c4d_core.config import load_config
+    return load_config(*args, **kwargs)
 
 
-def time_preset(preset: str, args) -> dict:
-    cfg = preset_config(preset, args.resolution, args.frames)
+def preset_config(preset: str, resolution: int, frames: int, extra: list[str] = ()):
+    return _load_config("datagen", preset, overrides=[
+        f"resolution=[{resolution},{resolution}]", f"frames={frames}", *extra])
+
+
+def time_preset(preset: str, args, extra: list[str] = ()) -> dict:
+    """Median seconds per stage, wall and CPU seconds per scene of `args.scenes` scenes."""
+    from datagen.assets import load_asset_library
+    from datagen.generate import generate_scene
+
+    cfg = preset_config(preset, args.resolution, args.frames, extra)
     assets = load_asset_library(cfg)
     generate_scene(cfg, 10_000, assets)  # warm-up: EGL context, shader compilation
     rows = []
@@ -54,6 +85,10 @@ def time_preset(preset: str, args) -> dict:
 
 def time_lit_pass(args) -> dict:
     """Median ms per lit frame with datagen's shaders and with pyrender's stock shaders."""
+    from datagen import render
+    from datagen.assets import load_asset_library
+    from datagen.generate import describe_and_simulate
+
     cfg = preset_config("movi-e", args.resolution, args.frames)
     assets = load_asset_library(cfg)
     description, sim = describe_and_simulate(cfg, 0, assets)
@@ -78,6 +113,9 @@ def time_lit_pass(args) -> dict:
 
 
 def _worker(job) -> tuple[int, float]:
+    from datagen.assets import load_asset_library
+    from datagen.generate import generate_scene
+
     preset, resolution, frames, indices = job
     cfg = preset_config(preset, resolution, frames)
     assets = load_asset_library(cfg)
@@ -98,6 +136,60 @@ def time_parallel(preset: str, args) -> dict:
             "peak_rss_mb": max(mb for _, mb in done)}
 
 
+def _child_run(tree: Path, preset: str, args, extra: list[str]) -> float:
+    """CPU seconds per scene of one fresh process of source tree `tree` (see the module doc)."""
+    env = dict(os.environ, PYTHONPATH=str(tree), PYOPENGL_PLATFORM="egl")
+    env.pop("OMP_NUM_THREADS", None)  # as a user's shell has it (the tests set it to 1)
+    size = ["--resolution", str(args.resolution), "--frames", str(args.frames)]
+    if not args.cli:
+        command = [sys.executable, str(Path(__file__).resolve()), "--child", preset,
+                   "--scenes", str(args.scenes), *size, *extra]
+        out = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
+        if out.returncode:
+            raise SystemExit(f"{tree}: {out.stderr[-2000:]}")
+        return float(out.stdout.split()[-1])
+    with tempfile.TemporaryDirectory() as folder:
+        command = [sys.executable, "-c", "import sys; from c4d.cli import main; sys.exit(main())",
+                   "datagen", "--preset", preset, "--num-scenes", str(args.scenes), "--out",
+                   str(Path(folder) / "out"), *size, *extra]
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        out = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if out.returncode:
+        raise SystemExit(f"{tree}: {out.stderr[-2000:]}")
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return cpu / args.scenes
+
+
+def compare_trees(args) -> None:
+    """Interleaved rounds of this tree (as it is, and with every layer on) and each `--against`
+    tree; prints the median CPU seconds per scene and the ratio to the first other tree."""
+    variants = {"this tree": (ROOT, [])}
+    if not args.cli:  # the layers' keys exist only here
+        variants["this tree, all layers"] = (ROOT, ALL_LAYERS)
+    for tree in args.against:
+        variants[str(tree)] = (Path(tree).resolve(), [])
+    reference = str(args.against[0])
+    print(f"{args.resolution}x{args.resolution} x {args.frames} frames, {args.scenes} scenes per "
+          f"{'c4d datagen run' if args.cli else 'process'}, {args.rounds} interleaved rounds; "
+          f"CPU seconds per scene, median over rounds; load average {os.getloadavg()[0]:.1f} on "
+          f"{os.cpu_count()} cores")
+    print("| preset | variant | CPU s/scene | runs | x " + reference + " |\n|---|---|---|---|---|")
+    for preset in args.presets:
+        runs: dict[str, list[float]] = {name: [] for name in variants}
+        for round_index in range(args.rounds):
+            names = list(variants) if round_index % 2 == 0 else list(variants)[::-1]
+            for name in names:
+                tree, extra = variants[name]
+                runs[name].append(_child_run(tree, preset, args, extra))
+        base = statistics.median(runs[reference])
+        for name, values in runs.items():
+            median = statistics.median(values)
+            print(f"| {preset} | {name} | {median:.2f} | {' '.join(f'{v:.2f}' for v in values)} "
+                  f"| {median / base:.3f} |", flush=True)
+    print(f"load average at the end {os.getloadavg()[0]:.1f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", type=int, default=3)
@@ -105,7 +197,19 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
-    args = parser.parse_args()
+    parser.add_argument("--against", nargs="+", metavar="TREE", help="source trees of other commits")
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds with --against")
+    parser.add_argument("--cli", action="store_true", help="with --against: time `c4d datagen` runs")
+    parser.add_argument("--child", metavar="PRESET", help=argparse.SUPPRESS)  # one --against run
+    args, extra = parser.parse_known_args()
+    if extra and not args.child:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if args.child:  # in the tree on PYTHONPATH: print CPU seconds per scene, last
+        print(time_preset(args.child, args, extra)["cpu"])
+        return
+    if args.against:
+        compare_trees(args)
+        return
     print(f"{args.resolution}x{args.resolution} x {args.frames} frames, median of {args.scenes} "
           f"scenes, one worker; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"{'preset':16s}" + "".join(f"{s:>9s}" for s in STAGES)
