@@ -25,6 +25,11 @@ function decodeBase64(text) {
   return bytes;
 }
 
+function ordinal(n) {
+  const tail = n % 100 >= 11 && n % 100 <= 13 ? 'th' : ({ 1: 'st', 2: 'nd', 3: 'rd' }[n % 10] || 'th');
+  return n + tail;
+}
+
 function typedArrays(header, bytes) {
   const types = { float16: Uint16Array, uint8: Uint8Array, float32: Float32Array, uint16: Uint16Array };
   const out = {};
@@ -83,7 +88,9 @@ function main() {
   const T = header.frames;
   document.getElementById('title').textContent = header.title;
   const notes = document.getElementById('notes');
-  for (const text of header.notes) {
+  const thinning = `drawn: every ${header.stride === 1 ? '' : ordinal(header.stride) + ' '}pixel of ` +
+    `every ${header.stride === 1 ? '' : ordinal(header.stride) + ' '}row, at most ${header.max_points} per frame`;
+  for (const text of [...header.notes, thinning]) {
     const line = document.createElement('div');
     line.className = 'note';
     line.textContent = text;
@@ -266,8 +273,8 @@ function main() {
     box.checked = show[key];
     box.id = 'show-' + key;
     box.addEventListener('change', () => { show[key] = box.checked; update(); });
-    const tag = document.createElement('label');
-    tag.htmlFor = box.id;
+    const tag = document.createElement('label');  // holds its box: the two wrap together
+    tag.appendChild(box);
     for (const value of keyed[key] || []) {
       const swatch = document.createElement('span');
       swatch.className = 'key';
@@ -275,7 +282,7 @@ function main() {
       tag.appendChild(swatch);
     }
     tag.appendChild(document.createTextNode(text));
-    toggles.append(box, tag);
+    toggles.appendChild(tag);
   }
   slider.addEventListener('input', () => { pause(); setFrame(Number(slider.value)); });
   playButton.addEventListener('click', () => (timer ? pause() : play()));
