@@ -289,6 +289,8 @@ def test_a_folder_that_is_no_reconstruction_is_one_line(tmp_path, capsys):
     line = _one_error_line(capsys, ["view", str(tmp_path), "--save", str(tmp_path / "v.html")])
     assert "neither a reconstruction" in line and "nor a shard set" in line
     assert not (tmp_path / "v.html").exists()
+    line = _one_error_line(capsys, ["view", str(tmp_path / "nowhere"), "--gt", str(tmp_path)])
+    assert "nowhere does not exist" in line
 
 
 def test_a_missing_frame_file_is_one_line(tmp_path, capsys, recon_dir):

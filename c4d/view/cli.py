@@ -88,6 +88,9 @@ def load_view(args) -> scene_data.ViewScene:
             gt = pick_scene(args.gt, args.scene_index)
             gt_name = f"{args.gt} scene {args.scene_index}"
         return scene_data.from_reconstruction(args.source, args.min_confidence, gt, gt_name)
+    if not Path(args.source).exists() and not any(c in args.source for c in "*?["):
+        raise UserError(f"{args.source} does not exist; give the --out folder of `c4d run` / "
+                        "`c4d demo` or a shard set of `c4d datagen`")
     if args.gt:
         raise UserError(f"--gt is for reconstructions, and {args.source} is not one (no "
                         "poses_tum.txt, pointmaps.npz or report.json)")
