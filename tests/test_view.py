@@ -346,3 +346,10 @@ def test_the_page_checks_see_broken_images_and_console_errors(tmp_path, browser)
     assert widths == [0, 0]
     errors = " | ".join(page.errors())
     assert "console: seen" in errors and "undefinedFunction" in errors and "missing.png" in errors
+
+
+def test_make_looks_for_the_browsers_c4d_view_looks_for():
+    makefile = (REPO / "Makefile").read_text()
+    names = re.search(r"^BROWSERS := (.*)$", makefile, re.M).group(1).split()
+    assert tuple(names) == chromium.BROWSER_NAMES
+    assert re.search(r"^test: .*\bbrowser\b", makefile, re.M)  # `make test` finds or installs it
