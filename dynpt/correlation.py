@@ -39,20 +39,71 @@ def _to_grid(xy: torch.Tensor, cell: float, h: int, w: int, align_corners: bool)
     return torch.stack([2 * u[..., 0] / w - 1, 2 * u[..., 1] / h - 1], dim=-1)
 
 
-def sample_neighbourhoods(
-    fmap: torch.Tensor, xy: torch.Tensor, cell: float, radius: int, align_corners: bool = False
-) -> torch.Tensor:
-    """Bilinear samples of fmap (B,T,C,h,w) around xy (B,T,N,2) -> (B,T,C,N,P), P=(2r+1)^2.
+def _to_cells(xy: torch.Tensor, cell: float, align_corners: bool) -> torch.Tensor:
+    """Input-pixel xy (...,2) -> feature-map coordinates in cells (see the module doc): where
+    `grid_sample` with `_to_grid`'s grid samples."""
+    return xy / cell if align_corners else (xy + 0.5) / cell - 0.5
 
-    `cell` is the map's stride in input pixels; the offsets are whole cells of this level.
+
+class _PatchCorrelation(torch.autograd.Function):
+    """rows (R,C), index (B,N,K) into rows, query (B,N,Q,C) -> (B,N,K,Q): rows[index] @ query^T.
+
+    Autograd would keep the gathered (B,N,K,C) rows for the backward pass; this keeps only the
+    index and gathers them again there (a copy, far cheaper than the products)."""
+
+    @staticmethod
+    @torch.amp.custom_fwd(device_type="cuda")
+    def forward(ctx, rows, index, query):
+        B, N, K = index.shape
+        ctx.save_for_backward(rows, index, query)
+        return rows.index_select(0, index.flatten()).view(B, N, K, -1) @ query.transpose(-1, -2)
+
+    @staticmethod
+    @torch.amp.custom_bwd(device_type="cuda")  # under bf16 autocast: the forward's dtypes
+    def backward(ctx, grad):
+        rows, index, query = ctx.saved_tensors
+        grad_rows = grad_query = None
+        if ctx.needs_input_grad[0]:
+            flat = (grad @ query).flatten(0, 2).to(rows.dtype)  # (B*N*K,C)
+            grad_rows = rows.new_zeros(rows.shape).index_add_(0, index.flatten(), flat)
+        if ctx.needs_input_grad[2]:
+            B, N, K = index.shape
+            patches = rows.index_select(0, index.flatten()).view(B, N, K, -1)
+            grad_query = (grad.transpose(-1, -2) @ patches).to(query.dtype)
+        return grad_rows, None, grad_query
+
+
+def neighbourhood_correlation(
+    fmap: torch.Tensor, query: torch.Tensor, xy: torch.Tensor, cell: float, radius: int,
+    align_corners: bool = False,
+) -> torch.Tensor:
+    """All dot products between the (2r+1)^2 bilinear samples of fmap around xy and the query
+    neighbourhoods: fmap (B,T,h,w,C) channels-last, query (B,N,Q,C), xy (B,T,N,2) pixels ->
+    (B,N,T,P*Q), P=(2r+1)^2 target offsets (row-major dy, dx) major, query offsets minor.
+
+    The same numbers as `grid_sample` (bilinear, border padding) of the P offsets of whole cells
+    followed by the products, to rounding: the offsets share one pair of bilinear weights, so
+    the products are taken with the (2r+2)^2 whole cells under the neighbourhood (edge cells
+    repeated past the border, which is what border padding samples) and blended after.
     """
-    B, T, C, h, w = fmap.shape
-    points = xy[:, :, :, None, :] + cell * _offsets(radius, xy.device)  # (B,T,N,P,2)
-    grid = _to_grid(points, cell, h, w, align_corners).flatten(0, 1).to(fmap.dtype)  # (B*T,N,P,2)
-    out = F.grid_sample(
-        fmap.flatten(0, 1), grid, mode="bilinear", padding_mode="border", align_corners=align_corners
-    )  # (B*T,C,N,P)
-    return out.unflatten(0, (B, T))  # (B,T,C,N,P), channels first: no copy before the einsum
+    B, T, h, w, C = fmap.shape
+    N, k = xy.shape[2], 2 * radius + 2
+    u = _to_cells(xy, cell, align_corners).transpose(1, 2)  # (B,N,T,2) in cells
+    u = torch.nan_to_num(u).clamp(-k, max(h, w) + k)  # far outside: the same edge cells
+    corner = u.floor()
+    frac = u - corner  # (B,N,T,2) bilinear weights of the next cell in x and y
+    first = corner.long() - radius  # (B,N,T,2) the patch's top-left cell
+    steps = torch.arange(k, device=xy.device)
+    xs = (first[..., 0, None] + steps).clamp_(0, w - 1)  # (B,N,T,k)
+    ys = (first[..., 1, None] + steps).clamp_(0, h - 1)
+    frames = (torch.arange(B, device=xy.device)[:, None] * T + torch.arange(T, device=xy.device))  # (B,T)
+    rows = (frames[:, None, :, None] * h + ys)[..., :, None] * w + xs[..., None, :]  # (B,N,T,k,k)
+    products = _PatchCorrelation.apply(fmap.reshape(B * T * h * w, C), rows.flatten(2), query)
+    products = products.unflatten(2, (T, k, k))  # (B,N,T,k,k,Q)
+    fx, fy = (frac[..., i, None, None, None].to(products.dtype) for i in (0, 1))  # (B,N,T,1,1,1)
+    x_blend = torch.lerp(products[..., :-1, :], products[..., 1:, :], fx)  # (B,N,T,k,k-1,Q)
+    corr = torch.lerp(x_blend[..., :-1, :, :], x_blend[..., 1:, :, :], fy)  # (B,N,T,k-1,k-1,Q)
+    return corr.flatten(3)
 
 
 def sample_query_neighbourhoods(
@@ -82,7 +133,7 @@ class CorrelationEncoder(nn.Module):
 
     For each track, frame and level, all (2r+1)^2 x (2r+1)^2 dot products between the features
     around the current estimate and those around the query point, then MLP -> `out_dim`.
-    Output (B,T,N,levels*out_dim). `align_corners` picks the sampling convention (module doc).
+    Output (B,N,T,levels*out_dim). `align_corners` picks the sampling convention (module doc).
     """
 
     def __init__(self, levels: int, radius: int, hidden_dim: int, out_dim: int, align_corners: bool = False):
@@ -101,13 +152,18 @@ class CorrelationEncoder(nn.Module):
             for i, f in enumerate(pyramid)
         ]
 
+    @staticmethod
+    def target_maps(pyramid: list[torch.Tensor]) -> list[torch.Tensor]:
+        """The pyramid (per level (B,T,C,h,w)) channels-last, (B,T,h,w,C), as `forward` reads it."""
+        return [f.permute(0, 1, 3, 4, 2).contiguous() for f in pyramid]
+
     def forward(
-        self, pyramid: list[torch.Tensor], query_feats: list[torch.Tensor], xy: torch.Tensor, stride: int
+        self, targets: list[torch.Tensor], query_feats: list[torch.Tensor], xy: torch.Tensor, stride: int
     ) -> torch.Tensor:
-        """pyramid: per level (B,T,C,h,w); query_feats: per level (B,N,P,C); xy (B,T,N,2) pixels."""
-        embs = []
-        for i, (fmap, q) in enumerate(zip(pyramid, query_feats)):
-            target = sample_neighbourhoods(fmap, xy, stride * 2**i, self.radius, self.align_corners)  # (B,T,C,N,P)
-            corr = torch.einsum("btcnp,bnqc->btnpq", target, q)  # (B,T,N,P,P)
-            embs.append(self.mlp(corr.flatten(-2)))  # (B,T,N,out)
-        return torch.cat(embs, dim=-1)  # (B,T,N,levels*out)
+        """targets: `target_maps` of the pyramid; query_feats: per level (B,N,P,C); xy (B,T,N,2)
+        pixels -> (B,N,T,levels*out)."""
+        embs = [
+            self.mlp(neighbourhood_correlation(fmap, q, xy, stride * 2**i, self.radius, self.align_corners))
+            for i, (fmap, q) in enumerate(zip(targets, query_feats))
+        ]  # per level (B,N,T,out)
+        return torch.cat(embs, dim=-1)

@@ -162,20 +162,23 @@ class DynPT(nn.Module):
         return starts
 
     def _tokens(self, coords: torch.Tensor, logits: torch.Tensor, corr: torch.Tensor) -> torch.Tensor:
-        """coords (B,S,N,2) pixels, logits (B,S,N,3), corr (B,S,N,Dc) -> tokens (B,N,S,D_in)."""
-        zero = torch.zeros_like(coords[:, :1])
-        fwd = torch.cat([coords[:, 1:] - coords[:, :-1], zero], dim=1)  # P_{t+1} - P_t
-        bwd = torch.cat([zero, coords[:, 1:] - coords[:, :-1]], dim=1)  # P_t - P_{t-1}
-        disp = torch.cat([fwd, bwd], dim=-1) / self.displacement_scale.repeat(2)  # (B,S,N,4)
-        tokens = torch.cat([logits, corr, fourier_encode(disp, self.config["fourier_freqs"])], dim=-1)
-        return tokens.transpose(1, 2)  # (B,N,S,D_in)
+        """coords (B,S,N,2) pixels, logits (B,S,N,3), corr (B,N,S,Dc) -> tokens (B,N,S,D_in)."""
+        coords = coords.transpose(1, 2)  # (B,N,S,2)
+        zero = torch.zeros_like(coords[:, :, :1])
+        step = coords[:, :, 1:] - coords[:, :, :-1]
+        fwd = torch.cat([step, zero], dim=2)  # P_{t+1} - P_t
+        bwd = torch.cat([zero, step], dim=2)  # P_t - P_{t-1}
+        disp = torch.cat([fwd, bwd], dim=-1) / self.displacement_scale.repeat(2)  # (B,N,S,4)
+        return torch.cat([logits.transpose(1, 2), corr, fourier_encode(disp, self.config["fourier_freqs"])],
+                         dim=-1)  # (B,N,S,D_in)
 
     def _refine(self, pyramid, query_feats, coords, logits, iters):
         """Iterative updates in one window; returns per-iteration [(coords, logits)]."""
         history = []
+        targets = self.corr.target_maps(pyramid)
         for _ in range(iters):
             coords = coords.detach()  # gradients flow through each iteration's update only
-            corr = self.corr(pyramid, query_feats, coords, self.stride)  # (B,S,N,Dc)
+            corr = self.corr(targets, query_feats, coords, self.stride)  # (B,N,S,Dc)
             delta_xy, delta_logits = self.transformer(self._tokens(coords, logits, corr))
             coords = coords + self.stride * delta_xy.transpose(1, 2)  # (B,S,N,2), stride-4 units
             logits = logits + delta_logits.transpose(1, 2)  # (B,S,N,3)

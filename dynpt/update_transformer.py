@@ -105,11 +105,17 @@ class UpdateTransformer(nn.Module):
             x = self.input_transform(tokens)  # (B,N,T,D)
             x = x + sincos_time_embedding(T, x.shape[-1], x.device).to(x.dtype)  # frame index in window
         V = self.virtual_tracks.shape[1]
-        x = torch.cat([x, self.virtual_tracks.expand(B, V, T, -1)], dim=1)  # (B,N+V,T,D)
-        for time_blk, v_from_p, v_blk, p_from_v in zip(
+        for layer, (time_blk, v_from_p, v_blk, p_from_v) in enumerate(zip(
             self.time_blocks, self.virtual_from_points, self.virtual_blocks, self.points_from_virtual
-        ):
-            x = time_blk(x.flatten(0, 1)).unflatten(0, (B, N + V))  # attention over T
+        )):
+            if layer == 0:  # the virtual tracks join the points; before the first attention over T
+                # they are the same in every frame and clip, and attention over T copies of a
+                # token gives that token: one frame of them stands for all
+                points = time_blk(x.flatten(0, 1)).unflatten(0, (B, N))  # (B,N,T,D)
+                virtual = time_blk(self.virtual_tracks[0]).expand(B, V, T, -1)  # (1,V,1,D)[0] -> (B,V,T,D)
+                x = torch.cat([points, virtual], dim=1)  # (B,N+V,T,D)
+            else:
+                x = time_blk(x.flatten(0, 1)).unflatten(0, (B, N + V))  # attention over T
             x = x.transpose(1, 2).flatten(0, 1)  # (B*T,N+V,D)
             points, virtual = x[:, :N], x[:, N:]
             virtual = v_from_p(virtual, points)

@@ -156,20 +156,61 @@ def test_encoder_configuration_errors(tmp_path):
     assert make_model().encoder_3d is None  # no checkpoint configured: CNN only, no random ViT
 
 
+def _sampled_correlation(fmap, query, xy, cell, radius, align_corners):
+    """The correlation as the code before issue 29 computed it: `grid_sample` (bilinear, border
+    padding) of the (2r+1)^2 whole-cell offsets around xy, then all products with the query
+    neighbourhoods. fmap (B,T,C,h,w), query (B,N,Q,C), xy (B,T,N,2) -> (B,N,T,P*Q)."""
+    from dynpt.correlation import _offsets, _to_grid
+
+    B, T, C, h, w = fmap.shape
+    points = xy[:, :, :, None, :] + cell * _offsets(radius, xy.device)  # (B,T,N,P,2)
+    grid = _to_grid(points, cell, h, w, align_corners).flatten(0, 1)
+    target = torch.nn.functional.grid_sample(fmap.flatten(0, 1), grid, mode="bilinear",
+                                             padding_mode="border", align_corners=align_corners)
+    corr = torch.einsum("btcnp,bnqc->bntpq", target.unflatten(0, (B, T)), query)
+    return corr.flatten(3)
+
+
+@pytest.mark.parametrize("align_corners", [False, True])
+def test_correlation_equals_sampling_then_products(align_corners):
+    """The whole-cell patch form gives grid_sample's numbers and gradients, past the borders too."""
+    from dynpt.correlation import neighbourhood_correlation
+
+    g = torch.Generator().manual_seed(3)
+    B, T, C, h, w, N, r, cell = 2, 3, 5, 6, 7, 9, 2, 4
+    fmap = torch.randn(B, T, C, h, w, generator=g, dtype=torch.float64, requires_grad=True)
+    query = torch.randn(B, N, (2 * r + 1) ** 2, C, generator=g, dtype=torch.float64, requires_grad=True)
+    xy = (torch.rand(B, T, N, 2, generator=g, dtype=torch.float64) * 1.6 - 0.3) * cell * torch.tensor(
+        [w, h], dtype=torch.float64)  # a fifth of the points beyond a border
+    xy[0, 0, 0] = torch.tensor([4 * (w - 1.0), 0.0])  # exactly on cell centres, the last and first
+    ours = neighbourhood_correlation(fmap.permute(0, 1, 3, 4, 2), query, xy, cell, r, align_corners)
+    ref = _sampled_correlation(fmap, query, xy, cell, r, align_corners)
+    torch.testing.assert_close(ours, ref)
+    weights = torch.randn(ref.shape, generator=g, dtype=torch.float64)
+    grads = [torch.autograd.grad((x * weights).sum(), (fmap, query)) for x in (ours, ref)]
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b)
+
+
 def test_correlation_samples_the_right_feature_cells():
     """Input pixel x sits at feature coordinate (x + 0.5) / stride - 0.5 on every pyramid level."""
-    from dynpt.correlation import feature_pyramid, sample_neighbourhoods, sample_query_neighbourhoods
+    from dynpt.correlation import feature_pyramid, neighbourhood_correlation, sample_query_neighbourhoods
 
     torch.manual_seed(0)
     fmap = torch.randn(1, 2, 5, 8, 10)  # (B,T,C,h,w) at stride 4
     xy = torch.tensor([[[4 * 3 + 1.5, 4 * 2 + 1.5]]]).expand(1, 2, 1, 2)  # cell (x=3, y=2)
-    out = sample_neighbourhoods(fmap, xy, cell=4, radius=1)  # (B,T,C,N,9)
-    assert torch.allclose(out[0, :, :, 0, 4], fmap[0, :, :, 2, 3])  # centre
-    assert torch.allclose(out[0, :, :, 0, 5], fmap[0, :, :, 2, 4])  # one cell right
-    assert torch.allclose(out[0, :, :, 0, 1], fmap[0, :, :, 1, 3])  # one cell up
+    one_hot = torch.eye(5)[None, None, :1]  # a query neighbourhood of one offset: channel 0
+
+    def sampled(level, at, cell, radius):  # channel 0 of the samples around `at`: (T, P)
+        return neighbourhood_correlation(level.permute(0, 1, 3, 4, 2), one_hot, at, cell, radius)[0, 0]
+
+    out = sampled(fmap, xy, 4, 1)
+    assert torch.allclose(out[:, 4], fmap[0, :, 0, 2, 3])  # centre
+    assert torch.allclose(out[:, 5], fmap[0, :, 0, 2, 4])  # one cell right
+    assert torch.allclose(out[:, 1], fmap[0, :, 0, 1, 3])  # one cell up
     coarse = feature_pyramid(fmap, 2)[1]  # stride 8: cell (1, 1) averages cells x 2..3, y 2..3
-    out = sample_neighbourhoods(coarse, torch.full((1, 2, 1, 2), 8 * 1 + 3.5), cell=8, radius=0)
-    assert torch.allclose(out[0, :, :, 0, 0], fmap[0, :, :, 2:4, 2:4].mean((-1, -2)), atol=1e-6)
+    out = sampled(coarse, torch.full((1, 2, 1, 2), 8 * 1 + 3.5), 8, 0)
+    assert torch.allclose(out[:, 0], fmap[0, :, 0, 2:4, 2:4].mean((-1, -2)), atol=1e-6)
     q = sample_query_neighbourhoods(fmap, torch.tensor([[1]]), xy[:, 0], cell=4, radius=1)  # (B,N,9,C)
     assert torch.allclose(q[0, 0, 4], fmap[0, 1, :, 2, 3])  # exactly frame 1, no blending in time
 

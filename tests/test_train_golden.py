@@ -95,11 +95,13 @@ def test_training_step_matches_the_earlier_code(name):
     actual = step_numbers(name)
     assert sorted(actual) == sorted(expected)
     np.testing.assert_allclose(actual[f"{name}/terms"], expected[f"{name}/terms"], rtol=2e-5, atol=1e-7)
-    for key in expected:
-        if "/grad/" in key:
-            scale = max(abs(expected[key][1]), 1e-12)  # entries and sums to the tensor's norm
-            np.testing.assert_allclose(actual[key], expected[key], rtol=1e-4, atol=1e-5 * scale,
-                                       err_msg=key)
+    grads = [key for key in expected if "/grad/" in key]
+    largest = max(expected[key][1] for key in grads)  # the largest gradient norm of the step
+    for key in grads:
+        # to rounding: of the tensor's own size, and of the step's (the biases before an instance
+        # norm have a gradient of zero in exact arithmetic, i.e. rounding noise of ~1e-9 of it)
+        atol = 1e-5 * expected[key][1] + 2e-6 * largest
+        np.testing.assert_allclose(actual[key], expected[key], rtol=1e-4, atol=atol, err_msg=key)
 
 
 if __name__ == "__main__" and sys.argv[1:] == ["--write"]:
