@@ -19,7 +19,9 @@ link `TREE/c4d_configs -> configs` for trees whose presets are installed as that
 round runs every variant once, in a fresh process, in an order that alternates between rounds
 (so a change in the machine's load hits all alike): this tree with the presets as they are,
 this tree with every optional layer on (`layers.*=true`), and each TREE. Reported: the median
-over rounds of CPU seconds per scene and its ratio to the first TREE (the previous commit).
+and the minimum over rounds of CPU seconds per scene, and the ratio to the first TREE (the
+previous commit) as the median over rounds of the ratio within each round (on a shared machine
+a round's load moves all its runs alike, so paired ratios scatter less than the seconds).
 The process generates `--scenes` scenes after a warm-up scene (`generate_scene`, the same
 indices everywhere). With `--cli` each run is instead a whole `c4d datagen --num-scenes
 SCENES` (default `--workers`, so scenes run in spawned workers, shard writing included), timed
@@ -174,7 +176,8 @@ def compare_trees(args) -> None:
           f"{'c4d datagen run' if args.cli else 'process'}, {args.rounds} interleaved rounds; "
           f"CPU seconds per scene, median over rounds; load average {os.getloadavg()[0]:.1f} on "
           f"{os.cpu_count()} cores")
-    print("| preset | variant | CPU s/scene | runs | x " + reference + " |\n|---|---|---|---|---|")
+    print("| preset | variant | CPU s/scene (median) | min | runs | x " + reference
+          + " (median of the rounds' ratios) |\n|---|---|---|---|---|---|")
     for preset in args.presets:
         runs: dict[str, list[float]] = {name: [] for name in variants}
         for round_index in range(args.rounds):
@@ -182,11 +185,12 @@ def compare_trees(args) -> None:
             for name in names:
                 tree, extra = variants[name]
                 runs[name].append(_child_run(tree, preset, args, extra))
-        base = statistics.median(runs[reference])
+                print(f"  {preset} round {round_index + 1}: {name} {runs[name][-1]:.2f} CPU-s/scene",
+                      file=sys.stderr, flush=True)
         for name, values in runs.items():
-            median = statistics.median(values)
-            print(f"| {preset} | {name} | {median:.2f} | {' '.join(f'{v:.2f}' for v in values)} "
-                  f"| {median / base:.3f} |", flush=True)
+            paired = statistics.median(v / r for v, r in zip(values, runs[reference]))
+            print(f"| {preset} | {name} | {statistics.median(values):.2f} | {min(values):.2f} | "
+                  f"{' '.join(f'{v:.2f}' for v in values)} | {paired:.3f} |", flush=True)
     print(f"load average at the end {os.getloadavg()[0]:.1f}")
 
 

@@ -12,6 +12,7 @@ cam_to_world (T,4,4) OpenCV, intrinsics (T,3,3).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,11 +28,29 @@ def segment_poses(object_to_world: np.ndarray) -> np.ndarray:
     return np.concatenate([backdrop, object_to_world], axis=0)
 
 
+@functools.lru_cache(maxsize=1)
+def _pixel_rays(intrinsics: bytes, height: int, width: int) -> np.ndarray:
+    """(H,W,3) float64 K^-1 [x, y, 1] of every pixel centre (z = 1), read-only; `intrinsics`
+    the bytes of a float64 (3,3) K. Cached: a scene's frames share one K."""
+    K = np.frombuffer(intrinsics, np.float64).reshape(3, 3)
+    pixels = np.concatenate([geometry.pixel_grid(height, width), np.ones((height, width, 1))], -1)
+    rays = pixels @ np.linalg.inv(K).T
+    rays.flags.writeable = False
+    return rays
+
+
+@functools.lru_cache(maxsize=1)
+def _pixel_grid32(height: int, width: int) -> np.ndarray:
+    """`geometry.pixel_grid` as float32 (H,W,2), read-only (cached for the flow of every frame)."""
+    grid = geometry.pixel_grid(height, width).astype(np.float32)
+    grid.flags.writeable = False
+    return grid
+
+
 def camera_points(depth: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     """(H,W,3) float32 camera-frame point seen at every pixel centre of a z-depth map (H,W)."""
-    height, width = depth.shape
-    pixels = np.concatenate([geometry.pixel_grid(height, width), np.ones((height, width, 1))], -1)
-    rays = pixels @ np.linalg.inv(intrinsics).T  # (H,W,3) with z = 1
+    K = np.ascontiguousarray(intrinsics, np.float64)
+    rays = _pixel_rays(K.tobytes(), *depth.shape)  # (H,W,3) with z = 1
     return (rays * depth[..., None]).astype(np.float32)
 
 
@@ -49,7 +68,7 @@ def flow_between(points_src: np.ndarray, segmentation_src: np.ndarray, intrinsic
     points_dst = np.einsum("hwij,hwj->hwi", per_pixel[..., :3], points_src) + per_pixel[..., 3]
     projected = points_dst @ intrinsics_dst.T.astype(np.float32)  # (H,W,3)
     pixels = projected[..., :2] / projected[..., 2:]
-    return pixels - geometry.pixel_grid(*segmentation_src.shape).astype(np.float32)
+    return pixels - _pixel_grid32(*segmentation_src.shape)
 
 
 def optical_flow(depth, segmentation, intrinsics, cam_to_world, object_to_world):

@@ -115,7 +115,8 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
                                            lambda ts: description.camera.pose_at(ts, num_frames))
     clock["labels"] = time.perf_counter() - start
 
-    visible_pixels = np.bincount(segmentation.ravel(), minlength=len(sim.placed) + 1)[1:]
+    visible_pixels = (instances["visible_pixels"].sum(axis=1) if instances is not None else
+                      np.bincount(segmentation.ravel(), minlength=len(sim.placed) + 1)[1:])
     objects = []
     for k, index in enumerate(sim.placed):
         spec = description.objects[index]
