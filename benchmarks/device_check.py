@@ -15,7 +15,10 @@ Sections, each through the project's own builders (configs, `dynpt.train.Trainer
    memory, peak memory;
 4. C4D stage 1 (GA + CMA + CTS) seconds per iteration (median) at 24 and 90 frames, 512x288,
    ground-truth pointmaps and flow of an analytic box scene (`tests/synthetic_scenes.py`);
-5. a real training run of a mid-sized config (the CNN-only model at a 256x256 crop, 16 frames,
+5. the DynPT training loader from the fresh shards (decode, clip, augment, track sampling) at the
+   crop of section 2, clips/s with 0, 1, 2, 4 and 8 worker processes (--cpu: 0 and 1), against
+   the bf16 step's clips/s of section 2, and the workers one GPU's step needs;
+6. a real training run of a mid-sized config (the CNN-only model at a 256x256 crop, 16 frames,
    256 tracks, batch 4) on the fresh shards, data loading included; D-ACC and AJ on the val set
    before and after. It runs last and lasts --train-seconds (300; --cpu 8) or what the budget has
    left after the other sections, its own calibration and the final validation, if less (the
@@ -39,6 +42,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes
 
 ROWS: list[tuple[str, str, str, str]] = []  # (check, setting, result, peak memory)
+STEP_CLIPS_PER_S: dict[str, float] = {}  # section 2's training speed per precision, for section 5
 BUDGET_MARGIN = 15.0  # seconds of the budget kept free (the run's start and checkpoint, rounding)
 
 
@@ -67,6 +71,7 @@ class Sizes:
         self.speed_preset = "tiny-cpu" if cpu else "paper-gpu-cnn-only"
         self.speed = tiny if cpu else []  # the paper crop: the config's own sizes
         self.speed_steps = (1, 3) if cpu else (3, 10)  # warm-up, timed
+        self.loader_workers, self.loader_clips = ((0, 1), 8) if cpu else ((0, 1, 2, 4, 8), 48)
         self.train_preset = "tiny-cpu" if cpu else "paper-gpu-cnn-only"
         self.train = tiny + ["data.num_workers=0", "eval.resolution=[64,64]", "eval.num_tracks=32"] if cpu else [
             "data.crop_size=[256,256]", "data.num_frames=16", "data.num_tracks=256",
@@ -140,6 +145,7 @@ def training_speed(train_dir: Path, out: Path, sizes: Sizes) -> None:
                 trainer.train_step(batches)
             _sync(trainer.device)
             seconds = (time.perf_counter() - start) / timed
+            STEP_CLIPS_PER_S[label] = 1 / seconds
             row("DynPT training speed", setting, f"{1 / seconds:.2f} clips/s ({seconds * 1e3:.0f} ms/step)",
                 gib(peak_memory(trainer.device)))
         finally:
@@ -153,7 +159,46 @@ def _sync(device) -> None:
         torch.cuda.synchronize(device)
 
 
-# --- 5. a real training run ---------------------------------------------------------------------
+# --- 5. the training loader ---------------------------------------------------------------------
+
+
+def loader_speed(train_dir: Path, sizes: Sizes) -> None:
+    """clips/s of `dynpt.data`'s loader (batch 1, as section 2) per worker count; the last row:
+    the fewest workers that keep up with the bf16 step, or the count extrapolated from the
+    fastest per-worker rate when none of those measured does."""
+    import math
+
+    import torch
+
+    from c4d_core.config import load_config
+    from dynpt.data import ShardStream, make_loader
+
+    data = load_config("dynpt", sizes.speed_preset, overrides=sizes.speed).data
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    step = STEP_CLIPS_PER_S.get("bf16")
+    setting = (f"{sizes.speed_preset} data, crop {data.crop_size[0]}x{data.crop_size[1]}, "
+               f"{data.num_frames} frames, {data.num_tracks} tracks, batch 1")
+    rates = {}
+    for workers in sizes.loader_workers:
+        loader = make_loader(ShardStream([str(train_dir)], [1.0], data, seed=0), 1, workers, device)
+        batches = iter(loader)
+        next(batches)  # the workers' start
+        start, clips = time.perf_counter(), 0
+        while clips < sizes.loader_clips:
+            clips += len(next(batches)["video"])
+        rates[workers] = clips / (time.perf_counter() - start)
+        del batches, loader
+        versus = f", {rates[workers] / step:.1f}x the bf16 step's {step:.2f} clips/s" if step else ""
+        row("DynPT loader", f"{setting}, {workers} workers", f"{rates[workers]:.1f} clips/s{versus}")
+    if step:
+        enough = [w for w, rate in rates.items() if rate >= step]
+        per_worker = max(rate / max(w, 1) for w, rate in rates.items())
+        need = min(enough) if enough else math.ceil(step / per_worker)
+        how = "measured" if enough else f"extrapolated from {per_worker:.1f} clips/s per worker"
+        row("DynPT loader workers per GPU", f"to feed {step:.2f} clips/s (bf16 step)", f"{need} ({how})")
+
+
+# --- 6. a real training run ---------------------------------------------------------------------
 
 
 def training_run(train_dir: Path, val_dir: Path, out: Path, sizes: Sizes, deadline: float) -> None:
@@ -349,6 +394,7 @@ def main(argv: list[str] | None = None) -> int:
                     ("DynPT training speed", lambda: training_speed(shards[0], out, sizes)),
                     ("DUSt3R pair forward", lambda: dust3r_forward(out, sizes)),
                     ("C4D stage 1 (GA+CMA+CTS)", lambda: c4d_stage1(sizes)),
+                    ("DynPT loader", lambda: loader_speed(shards[0], sizes)),
                     ("DynPT training run", lambda: training_run(*shards, out, sizes, deadline))]
         seconds = []
         for name, section in sections:

@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKS = {"shards (c4d datagen)": 1, "DynPT training speed": 2, "DynPT training run": 1,
+CHECKS = {"shards (c4d datagen)": 1, "DynPT training speed": 2, "DynPT loader": 2,
+          "DynPT loader workers per GPU": 1, "DynPT training run": 1,
           "DynPT D-ACC (val)": 1, "DynPT AJ (val)": 1, "DUSt3R pair forward": 2,
           "C4D stage 1 (GA+CMA+CTS)": 2}
 
