@@ -1,27 +1,36 @@
 """Benchmark of DynPT training: data pipeline throughput, train step time and peak memory.
 
 Usage:
-    python benchmarks/bench_dynpt_train.py [--shards DIR] [--format1-shards DIR] [--workers 2]
-        [--clips 120] [--models tiny,full] [--steps 3] [--repeats 3]
+    python benchmarks/bench_dynpt_train.py [--shards DIR] [--format1-shards DIR] [--workers 1,2]
+        [--loader-config PRESET --loader-set KEY=VALUE ...] [--clips 120] [--repeats 3]
+        [--models tiny,cnn-only,full] [--clip T,H,W,N] [--batch B] [--iters I] [--set KEY=VALUE ...]
+        [--before DIR] [--cotracker-step SCRIPT --cotracker-model online --cotracker-window S]
 
 - Data: clips/s of the training pipeline (read, decode, clip choice, augmentation, track
-  sampling, batching through a DataLoader) with `--workers` worker processes, on 24-frame
-  256x256 shards with 256 tracks per clip (target >= 50 clips/s, so the loader never starves a
-  GPU step), and the CPU ms per clip of the same pipeline in the main process (0 workers; load
-  independent: 50 clips/s from 2 workers needs <= 40 ms). Baselines in the same run: the main
-  process (0 workers), and with --format1-shards the same scenes in format 1 (rgb as PNG; make
-  them with an older `c4d datagen`), read the old way (every member) and the new way (only the
-  members training uses). Without --shards, 8 scenes are generated first with `c4d datagen`.
-- Train step: median seconds per optimiser step (forward, loss, backward, AdamW) and the peak
-  resident memory of a fresh process, for the `tiny-cpu` model and the paper's `full` model
-  (frozen ViT-L with random weights, as no DUSt3R file is needed to time it), both on the same
-  clip `--clip T,H,W,N` with batch 1; ratio full / tiny. The paper's clip (24,384,512,384) is
-  far beyond a 2-core CPU for the full model; the default is a reduced 8,128,128,64.
-  `--models tiny,tiny-2x --clip 8,64,64,32` compares the demo's model with
-  configs/dynpt/tiny-cpu-2x.yaml, which gets the clip at twice the height and width (it trains
-  on 2x crops of the same videos). `--models ft-mobility,ft-mobility-fusion,ft-full` times the
-  fine-tuning recipes from CoTracker3's weights (the optimiser gets `train.lr_scale`'s groups:
-  frozen parts take no gradient).
+  sampling, batching through a DataLoader) with each of `--workers` worker counts and with none
+  (the main process), and the CPU ms per clip (0 workers: this process; with workers: the worker
+  processes', from /proc: load independent). The loader's `data:` section is `--loader-config`
+  (paper-gpu) with `--loader-set` overrides (default: 24 frames, 256x256 crops, 256 tracks);
+  e.g. `--loader-config tiny-cpu-2x --loader-set data.shuffle_buffer=8` is the demo's loader.
+  With --format1-shards the same scenes in format 1 (rgb as PNG; make them with an older
+  `c4d datagen`) are read the old way (every member) and the new way (only the members training
+  uses). Without --shards, 8 scenes are generated first with `c4d datagen`. `--clips 0` skips it.
+- Train step: CPU seconds (and wall) per optimiser step as `dynpt.train.Trainer.train_step` takes
+  it (forward, loss, backward, gradient clipping, AdamW, OneCycle), after one warm-up step, and
+  the peak resident memory, of each model in `--models` on one seeded batch (`clip_inputs`:
+  `--batch` clips of `--clip T,H,W,N`), each in a fresh process per repeat, the systems
+  interleaved; medians over `--repeats`, ratios to the last system. `--set` overrides every
+  model's config (`--iters` is `model.train_iters`). `--before DIR` times each model again with
+  the `dynpt` package in DIR (`git archive COMMIT dynpt | tar -x -C DIR`): the code before a
+  change, in the same run. `--cotracker-step SCRIPT` times CoTracker3's own train step on the
+  same batch (saved as .npz) with a script kept outside this repository, which holds none of
+  CoTracker3's code: it is run as `SCRIPT --inputs NPZ --model online|offline --window S --iters I
+  --steps K` and prints one JSON line with step_cpu_s, step_s, peak_rss_gib and base_rss_gib
+  (after its imports); docs/PERFORMANCE.md says what it computes. Models: `tiny` (`tiny-cpu`),
+  `tiny-2x` (`tiny-cpu-2x`: the clip at twice its height and width), `cnn-only`
+  (`paper-gpu-cnn-only`), `full` (`paper-gpu`, frozen ViT-L with random weights: no DUSt3R file
+  is needed to time it) and the fine-tuning recipes `ft-mobility`, `ft-mobility-fusion`,
+  `ft-full` (the optimiser gets `train.lr_scale`'s groups: frozen parts take no gradient).
 """
 
 from __future__ import annotations
@@ -38,6 +47,7 @@ import time
 from pathlib import Path
 
 import cv2
+import numpy as np
 import torch
 
 from c4d_core.config import load_config
@@ -66,20 +76,24 @@ def _cpu_seconds(pids: list[int]) -> float:
     return total / os.sysconf("SC_CLK_TCK")
 
 
-def data_throughput(shards: str, workers: int, clips: int, repeats: int) -> tuple[list, list]:
-    """clips/s and CPU ms/clip of the training DataLoader over `shards`.
+LOADER_DEFAULT = ["data.crop_size=[256,256]", "data.num_tracks=256", "data.num_frames=24",
+                  "data.max_stride=1", "data.shuffle_buffer=4"]  # on the paper-gpu preset
 
-    24 frames, 256x256 crops, 256 tracks. CPU ms/clip is this process's with 0 workers, and the
-    worker processes' (from /proc, while timing) with workers: the load-independent cost.
+
+def data_throughput(shards: str, workers: int, clips: int, repeats: int, preset: str = "paper-gpu",
+                    overrides: list[str] = LOADER_DEFAULT, batch: int = 4) -> tuple[list, list]:
+    """clips/s and CPU ms/clip of the training DataLoader over `shards` with the `data:` section
+    of `preset` + `overrides` (default: 24 frames, 256x256 crops, 256 tracks).
+
+    CPU ms/clip is this process's with 0 workers, and the worker processes' (from /proc, while
+    timing) with workers: the load-independent cost.
     """
     from dynpt.data import ShardStream, make_loader
 
-    cfg = load_config("dynpt", "paper-gpu", overrides=[
-        "data.crop_size=[256,256]", "data.num_tracks=256", "data.num_frames=24",
-        "data.max_stride=1", "data.shuffle_buffer=4"]).data
+    cfg = load_config("dynpt", preset, overrides=overrides).data
     rates, cpu_ms = [], []
     for r in range(repeats):
-        loader = make_loader(ShardStream([shards], [1.0], cfg, seed=r), 4, workers)
+        loader = make_loader(ShardStream([shards], [1.0], cfg, seed=r), batch, workers)
         it = iter(loader)
         next(it)  # worker start-up is not throughput
         pids = [w.pid for w in getattr(it, "_workers", [])]  # DataLoader internals, Linux only
@@ -114,56 +128,151 @@ def _runs(values: list[float], digits: int = 1) -> str:
     return f"{statistics.median(values):.{digits}f} (runs {[round(v, digits) for v in values]})"
 
 
-def step_times(model: str, steps: int, clip: str) -> dict:
-    """Seconds per train step and peak RSS on a (T,H,W,N) clip (a fresh process by `main`)."""
+def clip_inputs(B: int, T: int, H: int, W: int, N: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """A seeded batch as the training loader delivers it: video uint8 (B,T,H,W,3), queries
+    float32 (B,N,3) as (t, x, y), tracks (B,T,N,2) (a random walk from each query point), visible
+    (B,T,N) (always at the query frame, where a quarter of the queries are after frame 0) and
+    moving (B,T,N) bool. Saved with `np.savez` it is also the input of `--cotracker-step`."""
+    rng = np.random.default_rng(seed)
+    t_q = np.where(rng.random((B, N)) < 0.25, rng.integers(0, T, (B, N)), 0)
+    xy_q = rng.random((B, N, 2)) * [W - 1, H - 1]
+    walk = rng.normal(0, 2.0, (B, T, N, 2)).cumsum(1)
+    walk -= np.take_along_axis(walk, t_q[:, None, :, None], 1)
+    visible = (rng.random((B, T, N)) > 0.2) | (np.arange(T)[None, :, None] == t_q[:, None])
+    return {"video": rng.integers(0, 256, (B, T, H, W, 3), dtype=np.uint8),
+            "queries": np.concatenate([t_q[..., None], xy_q], -1).astype(np.float32),
+            "tracks": (xy_q[:, None] + walk).astype(np.float32), "visible": visible,
+            "moving": rng.random((B, T, N)) > 0.8}
+
+
+def _peak_rss_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # Linux: KiB
+
+
+def step_times(model: str, steps: int, inputs: str, overrides: list[str]) -> dict:
+    """CPU and wall seconds per optimiser step and peak RSS (a fresh process by `main`) on the
+    batch saved at `inputs`, as `Trainer.train_step` does it: forward, loss, backward, gradient
+    clipping, AdamW and OneCycle steps."""
     from dynpt.losses import LossWeights, dynpt_loss
     from dynpt.model import build_model
     from dynpt.train import param_groups
 
-    preset, overrides, size_factor = MODELS[model]
-    cfg = load_config("dynpt", preset, overrides=overrides)
+    base_rss = _peak_rss_gib()  # after the imports
+    preset, preset_overrides, size_factor = MODELS[model]
+    cfg = load_config("dynpt", preset, overrides=[*preset_overrides, *overrides])
+    with np.load(inputs) as data:
+        batch = {k: torch.from_numpy(data[k]) for k in data.files}
+    video = batch["video"].permute(0, 1, 4, 2, 3).float()  # (B,T,3,H,W)
+    if size_factor != 1:  # the model tracks the clip at this multiple of its size
+        B, T = video.shape[:2]
+        video = torch.nn.functional.interpolate(video.flatten(0, 1), scale_factor=size_factor,
+                                                mode="bilinear").unflatten(0, (B, T))
+    queries = batch["queries"] * torch.tensor([1.0, size_factor, size_factor])
+    target = {"tracks": batch["tracks"] * size_factor, "visible": batch["visible"],
+              "moving": batch["moving"]}
+    torch.manual_seed(0)
     net = build_model(cfg.model).train()
-    opt = torch.optim.AdamW(param_groups(net, cfg.train.lr, cfg.train.lr_scale))  # train.lr_scale's groups
-    T, H, W, N = (int(v) for v in clip.split(","))
-    H, W, B = H * size_factor, W * size_factor, 1
-    gen = torch.Generator().manual_seed(0)
-    video = torch.rand(B, T, 3, H, W, generator=gen) * 255
-    queries = torch.rand(B, N, 3, generator=gen) * torch.tensor([T - 1, W - 1, H - 1])
-    queries[..., 0] = queries[..., 0].round()
-    target = {"tracks": queries[:, None, :, 1:].expand(B, T, N, 2).contiguous(),
-              "visible": torch.rand(B, T, N, generator=gen) > 0.3,
-              "moving": torch.rand(B, T, N, generator=gen) > 0.8}
+    tc = cfg.train
+    groups = param_groups(net, tc.lr, tc.lr_scale)  # train.lr_scale's groups
+    opt = torch.optim.AdamW(groups, lr=tc.lr, weight_decay=tc.weight_decay, eps=tc.adam_eps)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=[g["lr"] for g in groups],
+                                                total_steps=steps + 101, cycle_momentum=False)
     weights = LossWeights.from_config(cfg.loss)
     times, cpu = [], []
     for _ in range(steps + 1):  # the first step warms up allocators
         start, cpu_start = time.perf_counter(), time.process_time()
         loss, _ = dynpt_loss(net(video, queries), target, weights)
         loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), tc.grad_clip)
         opt.step()
+        sched.step()
         opt.zero_grad(set_to_none=True)
         times.append(time.perf_counter() - start)
         cpu.append(time.process_time() - cpu_start)
-    return {"model": model, "B": B, "T": T, "HxW": f"{H}x{W}", "N": N,
+    B, T, _, H, W = video.shape
+    return {"model": model, "B": B, "T": T, "HxW": f"{H}x{W}", "N": queries.shape[1],
             "trainable_params": sum(p.numel() for p in net.parameters() if p.requires_grad),
             "step_s": statistics.median(times[1:]), "all_step_s": times[1:],
-            "step_cpu_s": statistics.median(cpu[1:]),
-            "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+            "step_cpu_s": statistics.median(cpu[1:]), "all_step_cpu_s": cpu[1:],
+            "peak_rss_gib": _peak_rss_gib(), "base_rss_gib": base_rss}
+
+
+def compare_steps(systems: list[str], args) -> None:
+    """Each system's train step in a fresh process per repeat, the systems interleaved (a, b, a,
+    b, ...); per system the median over repeats of each process's median CPU seconds, its peak
+    RSS (median), and the ratios to the last system (`--cotracker-step` when given)."""
+    B, (T, H, W, N) = args.batch, (int(v) for v in args.clip.split(","))
+    inputs = Path(tempfile.mkdtemp(prefix="bench-dynpt-step-")) / "batch.npz"
+    np.savez(inputs, **clip_inputs(B, T, H, W, N))
+    runs: dict[str, list[dict]] = {name: [] for name in systems}
+    for repeat in range(args.repeats):
+        for name in systems:
+            if name == "cotracker3":
+                cmd = [sys.executable, args.cotracker_step, "--inputs", str(inputs), "--model",
+                       args.cotracker_model, "--window", str(args.cotracker_window), "--iters",
+                       str(args.iters), "--steps", str(args.steps)]
+            else:
+                cmd = [sys.executable, __file__, "--only-steps", name.split("@")[0], "--steps", str(args.steps),
+                       "--inputs", str(inputs), *[f"--set={o}" for o in args.set],
+                       *([f"--set=model.train_iters={args.iters}"] if args.iters else [])]
+            env = dict(os.environ)
+            if name.endswith("@before"):  # the same model from the code in --before
+                env["PYTHONPATH"] = os.pathsep.join([args.before, env.get("PYTHONPATH", "")])
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+            r = json.loads(out.stdout.strip().splitlines()[-1])
+            runs[name].append(r)
+            print(f"repeat {repeat} {name:>10} (B={r['B']} T={r['T']} {r['HxW']} N={r['N']}, "
+                  f"{r['trainable_params'] / 1e6:.2f}M trainable): CPU {r['step_cpu_s']:.2f} s/step "
+                  f"(wall {r['step_s']:.2f} s), peak RSS {r['peak_rss_gib']:.2f} GiB "
+                  f"(after imports {r['base_rss_gib']:.2f})", flush=True)
+    med = {name: {key: statistics.median(r[key] for r in rs)
+                  for key in ("step_cpu_s", "step_s", "peak_rss_gib", "base_rss_gib")}
+           for name, rs in runs.items()}
+    ref = systems[-1]
+    print(f"\n| system | CPU s/step (median of {args.repeats}) | peak RSS GiB | above imports GiB "
+          f"| time / {ref} | memory / {ref} | memory above imports / {ref} |\n|---|---:|---:|---:|---:|---:|---:|")
+    for name, m in med.items():
+        above, ref_above = m["peak_rss_gib"] - m["base_rss_gib"], med[ref]["peak_rss_gib"] - med[ref]["base_rss_gib"]
+        print(f"| {name} | {m['step_cpu_s']:.2f} | {m['peak_rss_gib']:.2f} | {above:.2f} | "
+              f"{m['step_cpu_s'] / med[ref]['step_cpu_s']:.2f} | "
+              f"{m['peak_rss_gib'] / med[ref]['peak_rss_gib']:.2f} | {above / ref_above:.2f} |")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shards", help="24-frame 256x256 shard set (default: generate 8 scenes)")
     parser.add_argument("--format1-shards", help="the same scenes in shard format 1 (rgb PNG)")
-    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--workers", default="2", help="loader worker counts compared with 0, e.g. 1,2")
+    parser.add_argument("--loader-config", default="paper-gpu", help="the dynpt preset of the loader's data:")
+    parser.add_argument("--loader-set", action="append", metavar="KEY=VALUE",
+                        help="data: overrides of the loader (default: 24 frames, 256x256 crops, 256 "
+                        "tracks, stride 1)")
+    parser.add_argument("--loader-batch", type=int, default=4)
     parser.add_argument("--clips", type=int, default=120, help="clips timed per repeat")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--models", default="tiny,cnn-only,full")
-    parser.add_argument("--steps", type=int, default=3, help="timed train steps per model")
+    parser.add_argument("--models", default="tiny,cnn-only,full",
+                        help="DynPT models (keys of MODELS) whose train step is timed")
+    parser.add_argument("--steps", type=int, default=3, help="timed train steps per process")
     parser.add_argument("--clip", default="8,128,128,64", help="T,H,W,N of the timed clip")
+    parser.add_argument("--batch", type=int, default=1, help="clips per train step")
+    parser.add_argument("--iters", type=int, default=0, help="refinement iterations (0: the preset's)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="config override for every DynPT model, e.g. model.window_stride=8")
+    parser.add_argument("--cotracker-step", metavar="SCRIPT",
+                        help="a script timing CoTracker3's own train step on the same batch (not part "
+                        "of this repository): run as SCRIPT --inputs NPZ --model M --window S --iters I "
+                        "--steps K, it prints one JSON line with step_cpu_s, step_s, peak_rss_gib, "
+                        "base_rss_gib")
+    parser.add_argument("--before", metavar="DIR", help="a folder holding an earlier `dynpt` package "
+                        "(e.g. `git archive COMMIT dynpt | tar -x -C DIR`): each model is also timed "
+                        "with it, interleaved")
+    parser.add_argument("--cotracker-model", default="online", choices=("online", "offline"))
+    parser.add_argument("--cotracker-window", type=int, default=16)
     parser.add_argument("--only-steps", help=argparse.SUPPRESS)  # child process mode
+    parser.add_argument("--inputs", help=argparse.SUPPRESS)  # child process mode: the batch
     args = parser.parse_args()
     if args.only_steps:
-        print(json.dumps(step_times(args.only_steps, args.steps, args.clip)))
+        print(json.dumps(step_times(args.only_steps, args.steps, args.inputs, args.set)))
         return
 
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average "
@@ -185,26 +294,22 @@ def main() -> None:
             for way, only in ways:
                 print(f"read + decode_scene (training fields), {name}, {way}: "
                       f"{_runs(read_decode_ms(path, args.repeats, only))} CPU ms/scene")
-            base, base_cpu = data_throughput(path, 0, args.clips // 4, args.repeats)
-            rates, cpu = data_throughput(path, args.workers, args.clips, args.repeats)
-            print(f"data pipeline, {name}, 24x256x256, 256 tracks, batch 4: 0 workers "
-                  f"{_runs(base)} clips/s, {_runs(base_cpu)} CPU ms/clip; {args.workers} workers "
-                  f"{_runs(rates)} clips/s, {_runs(cpu)} worker CPU ms/clip; ratio "
-                  f"{statistics.median(rates) / statistics.median(base):.2f}x")
-    results = []
-    for model in [m for m in args.models.split(",") if m]:
-        out = subprocess.run([sys.executable, __file__, "--only-steps", model, "--steps",
-                              str(args.steps), "--clip", args.clip],
-                             capture_output=True, text=True, check=True)
-        results.append(json.loads(out.stdout.strip().splitlines()[-1]))
-        r = results[-1]
-        print(f"train step {r['model']:>4} (B={r['B']} T={r['T']} {r['HxW']} N={r['N']}, "
-              f"{r['trainable_params'] / 1e6:.2f}M trainable): median {r['step_s']:.2f} s "
-              f"(runs {[round(t, 2) for t in r['all_step_s']]}), CPU {r['step_cpu_s']:.2f} s, "
-              f"peak RSS {r['peak_rss_gib']:.2f} GiB")
-    for r in results[1:]:
-        print(f"ratio {r['model']}/{results[0]['model']} step time: "
-              f"{r['step_s'] / results[0]['step_s']:.1f}x")
+            loader = (args.loader_config, args.loader_set or LOADER_DEFAULT, args.loader_batch)
+            cfg = load_config("dynpt", loader[0], overrides=loader[1]).data
+            setting = (f"{loader[0]} {cfg.num_frames}x{cfg.crop_size[0]}x{cfg.crop_size[1]}, "
+                       f"{cfg.num_tracks} tracks, batch {loader[2]}")
+            base, base_cpu = data_throughput(path, 0, args.clips // 4, args.repeats, *loader)
+            print(f"data pipeline, {name}, {setting}: 0 workers {_runs(base)} clips/s, "
+                  f"{_runs(base_cpu)} CPU ms/clip", flush=True)
+            for workers in [int(w) for w in args.workers.split(",") if int(w) > 0]:
+                rates, cpu = data_throughput(path, workers, args.clips, args.repeats, *loader)
+                print(f"data pipeline, {name}, {setting}: {workers} workers {_runs(rates)} clips/s, "
+                      f"{_runs(cpu)} worker CPU ms/clip; ratio to 0 workers "
+                      f"{statistics.median(rates) / statistics.median(base):.2f}x", flush=True)
+    models = [m for m in args.models.split(",") if m]
+    systems = models + [f"{m}@before" for m in models if args.before] + ["cotracker3"] * bool(args.cotracker_step)
+    if systems:
+        compare_steps(systems, args)
 
 
 if __name__ == "__main__":
