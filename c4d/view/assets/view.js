@@ -110,8 +110,8 @@ function main() {
   // Points: each frame's static and dynamic points as two geometries on views of the payload,
   // made (and sent to the GPU) when the frame is first shown, so opening a long video is quick.
   const camera = new THREE.PerspectiveCamera(50, container.clientWidth / container.clientHeight, 1e-3, 1e5);
-  // three.js scales a point by (canvas height / 2) / depth; a disc 1.3 pixel pitches wide.
-  const worldSize = 1.3 * header.point_size / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
+  // three.js scales a point by (canvas height / 2) / depth; a disc one pixel pitch wide.
+  const worldSize = header.point_size / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
   const disc = discTexture();
   const staticMaterial = new THREE.PointsMaterial({ size: worldSize, vertexColors: true, map: disc, alphaTest: 0.5 });
   const dynamicMaterial = new THREE.PointsMaterial({ size: worldSize, color: COLORS.moving, map: disc, alphaTest: 0.5 });
@@ -143,7 +143,10 @@ function main() {
   const cameras = cameraGroup(header.cameras, size, depth, COLORS.camera);
   const truth = header.gt_cameras ? cameraGroup(header.gt_cameras, size, depth, COLORS.truth) : null;
   scene.add(cameras);
-  if (truth) scene.add(truth);
+  if (truth) {
+    truth.renderOrder = 1;  // over the estimated cameras where the two coincide
+    scene.add(truth);
+  }
   const current = new THREE.LineSegments(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: COLORS.current }));
   current.geometry.setAttribute('position', new THREE.BufferAttribute(new Float32Array(16 * 3), 3));
   current.frustumCulled = false;
@@ -186,14 +189,15 @@ function main() {
     }
   }
 
-  // The virtual camera: behind and above the first camera, looking at the centre; up is the
-  // cameras' mean up direction (OpenCV's y axis points down).
+  // The virtual camera: behind, above and to the side of the first camera, looking at the
+  // centre, so that depth shows; up is the cameras' mean up direction (OpenCV's y points down).
   const poses = header.cameras.cam_to_world;
   const up = new THREE.Vector3(...[1, 5, 9].map(i => -poses.reduce((s, p) => s + p[i], 0))).normalize();
   const first = new THREE.Vector3(poses[0][3], poses[0][7], poses[0][11]);
-  const back = first.clone().multiplyScalar(1.6);
+  const reach = first.length() + depth;
+  const side = new THREE.Vector3().crossVectors(first, up).normalize();
   camera.up.copy(up);
-  camera.position.copy(back.add(up.clone().multiplyScalar(0.6 * first.length() + depth)));
+  camera.position.copy(first.clone().multiplyScalar(1.3)).addScaledVector(up, 0.5 * reach).addScaledVector(side, 0.5 * reach);
   const controls = new OrbitControls(camera, renderer.domElement);
   controls.target.set(0, 0, 0);
   controls.update();
