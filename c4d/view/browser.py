@@ -32,7 +32,7 @@ FLAGS = (
     "--headless", "--remote-debugging-pipe", "--no-first-run", "--no-default-browser-check",
     "--disable-extensions", "--disable-background-networking", "--disable-sync", "--mute-audio",
     "--hide-scrollbars", "--disable-dev-shm-usage", "--use-angle=swiftshader",
-    "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist", "about:blank",
+    "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
 )
 
 
@@ -70,14 +70,15 @@ class Browser:
             os.dup2(to_child, 3)
             os.dup2(from_child, 4)
 
-        flags = [*FLAGS[:-1], f"--user-data-dir={self._profile.name}",
-                 f"--window-size={width},{height}", *(("--no-sandbox",) if os.geteuid() == 0 else ()),
-                 FLAGS[-1]]
+        flags = [*FLAGS, f"--user-data-dir={self._profile.name}", f"--window-size={width},{height}",
+                 *(("--no-sandbox",) if os.geteuid() == 0 else ()), "about:blank"]  # root: no sandbox
         try:
             self._process = subprocess.Popen(
                 [executable, *flags], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL, close_fds=False, preexec_fn=child_fds)
         except OSError as exc:
+            for fd in (self._in, self._out):
+                os.close(fd)
             self._profile.cleanup()
             raise UserError(f"cannot start {executable}: {exc.strerror or exc}") from exc
         finally:
