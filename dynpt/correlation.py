@@ -48,8 +48,9 @@ def _to_cells(xy: torch.Tensor, cell: float, align_corners: bool) -> torch.Tenso
 class _PatchCorrelation(torch.autograd.Function):
     """rows (R,C), index (B,N,K) into rows, query (B,N,Q,C) -> (B,N,K,Q): rows[index] @ query^T.
 
-    Autograd would keep the gathered (B,N,K,C) rows for the backward pass; this keeps only the
-    index and gathers them again there (a copy, far cheaper than the products)."""
+    Autograd would keep the gathered (B,N,K,C) rows for the backward pass; this keeps the index
+    (and `rows`, which the window holds anyway) and gathers them again there (a copy, far cheaper
+    than the products)."""
 
     @staticmethod
     @torch.amp.custom_fwd(device_type="cuda")
@@ -96,7 +97,7 @@ def neighbourhood_correlation(
     steps = torch.arange(k, device=xy.device)
     xs = (first[..., 0, None] + steps).clamp_(0, w - 1)  # (B,N,T,k)
     ys = (first[..., 1, None] + steps).clamp_(0, h - 1)
-    frames = (torch.arange(B, device=xy.device)[:, None] * T + torch.arange(T, device=xy.device))  # (B,T)
+    frames = torch.arange(B, device=xy.device)[:, None] * T + torch.arange(T, device=xy.device)  # (B,T)
     rows = (frames[:, None, :, None] * h + ys)[..., :, None] * w + xs[..., None, :]  # (B,N,T,k,k)
     products = _PatchCorrelation.apply(fmap.reshape(B * T * h * w, C), rows.flatten(2), query)
     products = products.unflatten(2, (T, k, k))  # (B,N,T,k,k,Q)
