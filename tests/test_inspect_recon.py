@@ -55,7 +55,7 @@ def _not_blank(image: np.ndarray) -> bool:
 def test_reading_a_complete_reconstruction_finds_no_problem(recon_dir, box_scene):
     recon = outputs.read_reconstruction(recon_dir, strict=False)
     assert recon.problems == []
-    assert recon_report.is_reconstruction(recon_dir)
+    assert outputs.is_reconstruction(recon_dir)
     np.testing.assert_allclose(recon.cam_to_world, box_scene.cam_to_world, atol=1e-5)
     assert recon.frames.shape == box_scene.rgb.shape and recon.masks.any()
     assert len(recon.ply_points) > 1000 and recon.ply_colors.std() > 0

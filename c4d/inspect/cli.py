@@ -63,7 +63,7 @@ def load_inspect_config(args):
 
 def _run_reconstruction(args, cfg) -> int:
     from c4d.inspect import recon_report
-    from c4d_pipeline.outputs import read_reconstruction
+    from c4d_pipeline.outputs import is_reconstruction, read_reconstruction
 
     if args.check and args.out is None:
         recon = read_reconstruction(args.source, strict=False)
@@ -85,7 +85,7 @@ def _run_reconstruction(args, cfg) -> int:
     compare = {}
     for item in args.compare:
         label, sep, folder = item.partition("=")
-        if not sep or not label or not recon_report.is_reconstruction(folder):
+        if not sep or not label or not is_reconstruction(folder):
             raise UserError(f"--compare {item!r}: give LABEL=DIR with DIR a reconstruction of `c4d run`")
         compare[label] = Path(folder)
     summary = recon_report.build_recon_report(args.source, args.out, cfg, gt, gt_name,
@@ -134,7 +134,7 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from c4d.inspect.recon_report import is_reconstruction
+    from c4d_pipeline.outputs import is_reconstruction
 
     cfg = load_inspect_config(args)
     if is_reconstruction(args.source):

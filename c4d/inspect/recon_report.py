@@ -22,7 +22,7 @@ from c4d_core.files import make_folder, write_json
 from c4d_core.video import write_image, write_video
 from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
 from c4d_pipeline.eval_recon import scene_frame_indices
-from c4d_pipeline.outputs import Reconstruction, is_reconstruction, read_reconstruction  # noqa: F401
+from c4d_pipeline.outputs import Reconstruction, read_reconstruction
 
 CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
 

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import cv2
+import numpy as np
 from tqdm import tqdm
 
 from c4d_core.errors import UserError
@@ -65,6 +67,14 @@ class ExportFormat:
     layers: tuple[str, ...]
     write_scene: Callable[[Scene, Path, str], None] | None = None
     write_file: Callable[[Iterator[tuple[str, Scene]], Path], int] | None = None
+
+
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    """An RGB(A) PNG of uint8 or uint16 (H,W,3|4) channels in RGB(A) order (inside a staged
+    scene folder, so written in place)."""
+    channels = [2, 1, 0, 3][:rgb.shape[-1]]
+    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., channels])):
+        raise OSError(f"cannot write {path}")
 
 
 def source_of(meta: dict[str, Any]) -> dict[str, Any]:

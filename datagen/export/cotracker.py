@@ -17,10 +17,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from datagen.export.base import ExportFormat
+from datagen.export.base import ExportFormat, write_png
 from datagen.scene import Scene
 
 
@@ -30,8 +29,7 @@ def write_scene(scene: Scene, folder: Path, name: str) -> None:
     frames = folder / "frames"
     frames.mkdir()
     for t, frame in enumerate(scene.rgb):
-        if not cv2.imwrite(str(frames / f"{t:05d}.png"), np.ascontiguousarray(frame[..., ::-1])):
-            raise OSError(f"cannot write {frames / f'{t:05d}.png'}")
+        write_png(frames / f"{t:05d}.png", frame)
     np.save(folder / f"{name}.npy",
             {"coords": scene.tracks.astype(np.float32), "visibility": scene.occluded.astype(bool),
              "moving": scene.moving.astype(bool)}, allow_pickle=True)

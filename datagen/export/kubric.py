@@ -26,14 +26,13 @@ import colorsys
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from PIL import Image
 
 from c4d_core.errors import UserError
 from c4d_core.files import write_json
 from c4d_core.geometry import matrix_to_quat, pixel_grid
-from datagen.export.base import ExportFormat
+from datagen.export.base import ExportFormat, write_png
 from datagen.scene import Scene
 
 BLENDER_AXES = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> Blender's (right-multiplied)
@@ -84,13 +83,6 @@ def hls_palette(count: int) -> np.ndarray:
     hues = (np.linspace(0, 1, count + 1)[:-1] + 0.01) % 1
     colours = [(0.0, 0.0, 0.0)] + [colorsys.hls_to_rgb(h, 0.5, 0.7) for h in hues]
     return np.round(np.array(colours) * 255).astype(np.uint8)
-
-
-def _png(path: Path, rgb: np.ndarray) -> None:
-    """An RGB(A) PNG of uint8 or uint16 (H,W,3|4) channels in RGB(A) order."""
-    channels = [2, 1, 0, 3][:rgb.shape[-1]]
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., channels])):
-        raise OSError(f"cannot write {path}")
 
 
 def _normalised(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -186,15 +178,15 @@ def write_scene(scene: Scene, folder: Path, name: str) -> None:
     coordinates = unit_to_uint16(scene.object_coordinates)
     alpha = np.full((h, w, 1), 255, np.uint8)
     for t in range(scene.num_frames):
-        _png(folder / f"rgba_{t:05d}.png", np.concatenate([scene.rgb[t], alpha], axis=-1))
+        write_png(folder / f"rgba_{t:05d}.png", np.concatenate([scene.rgb[t], alpha], axis=-1))
         Image.fromarray(depth[t]).save(folder / f"depth_{t:05d}.tiff")
         image = Image.fromarray(segmentation[t])
         image.putpalette(palette.tobytes())
         image.save(folder / f"segmentation_{t:05d}.png")
-        _png(folder / f"forward_flow_{t:05d}.png", forward[t])
-        _png(folder / f"backward_flow_{t:05d}.png", backward[t])
-        _png(folder / f"normal_{t:05d}.png", normal[t])
-        _png(folder / f"object_coordinates_{t:05d}.png", coordinates[t])
+        write_png(folder / f"forward_flow_{t:05d}.png", forward[t])
+        write_png(folder / f"backward_flow_{t:05d}.png", backward[t])
+        write_png(folder / f"normal_{t:05d}.png", normal[t])
+        write_png(folder / f"object_coordinates_{t:05d}.png", coordinates[t])
     meta = scene.meta
     write_json(folder / "data_ranges.json", {"backward_flow": backward_range,
                                              "forward_flow": forward_range})
