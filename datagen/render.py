@@ -55,11 +55,18 @@ def _shader_cache_class():
     pyrender = _pyrender()
 
     class DatagenShaders(pyrender.shader_program.ShaderProgramCache):
+        # (directional, point) lights of the scene being rendered: compile-time loop bounds of
+        # the lit pass, set by SceneRenderer (Mesa unrolls constant loops; a loop bounded by a
+        # uniform indexing pyrender's 26 shadow samplers costs 1.5x the whole pass on llvmpipe).
+        light_counts = (0, 0)
+
         def get_program(self, vertex_shader, fragment_shader, geometry_shader=None,
                         defines=None):
             if fragment_shader == "mesh.frag":  # the lit pass; depth, shadow and seg stay
                 vertex_shader = str(SHADER_DIR / "mesh.vert")
                 fragment_shader = str(SHADER_DIR / "mesh.frag")
+                defines = {**(defines or {}), "NUM_DIRECTIONAL_LIGHTS": self.light_counts[0],
+                           "NUM_POINT_LIGHTS": self.light_counts[1]}
             elif fragment_shader == "flat.frag":  # pyrender's FLAT pass, unused: the surface pass
                 vertex_shader = str(SHADER_DIR / "surface.vert")
                 fragment_shader = str(SHADER_DIR / "surface.frag")
@@ -112,6 +119,33 @@ def _offscreen():
     offscreen = _pyrender().OffscreenRenderer(1, 1)
     offscreen._renderer._program_cache = _shader_cache_class()()  # pyrender has no public hook
     return offscreen
+
+
+_LOCATIONS: dict[int, dict[str, int]] = {}  # GL program id -> uniform name -> location
+
+
+def _set_uniform(program, name: str, value) -> None:
+    """pyrender's `ShaderProgram.set_uniform` (the same float32 conversions, and a uniform the
+    program lacks is skipped), with each location looked up once per program instead of on
+    every call. value: a float or int, a (n,) float array or a (4,4) matrix (row-major)."""
+    from OpenGL import GL as gl
+
+    locations = _LOCATIONS.setdefault(program._program_id, {})
+    location = locations.get(name)
+    if location is None:
+        location = locations[name] = int(gl.glGetUniformLocation(program._program_id, name))
+    if location == -1:
+        return
+    if isinstance(value, np.ndarray) and value.ndim == 2:
+        gl.glUniformMatrix4fv(location, 1, gl.GL_TRUE, value.astype(np.float32))
+    elif isinstance(value, np.ndarray):
+        vector = value.astype(np.float32)
+        (gl.glUniform1fv, gl.glUniform2fv, gl.glUniform3fv,
+         gl.glUniform4fv)[len(vector) - 1](location, 1, vector)
+    elif isinstance(value, (bool, int, np.integer)):
+        gl.glUniform1i(location, int(value))
+    else:
+        gl.glUniform1f(location, float(value))
 
 
 _SURFACE_TARGET: dict = {}  # the process's surface framebuffer: size, framebuffer, renderbuffers
@@ -269,21 +303,23 @@ class SceneRenderer:
             dome_image, equirect))
         # pyrender casts shadows from every directional light when asked to, so only the sun is
         # directional; the fill is a distant point light with the same irradiance at the origin.
-        self.shadows = False
-        suns = []
+        self.sun_nodes, self.point_nodes = [], []  # in the description's order
         for light in description.lights:
             if light.shadows:
                 sun = _sun_light_class()(color=light.color, intensity=light.intensity)
                 sun.half_width = float(cfg.lights.shadow_extent)
-                suns.append(self.scene.add(sun, pose=_frame_with_z(-light.direction)))
-                self.shadows = True
+                self.sun_nodes.append(self.scene.add(sun, pose=_frame_with_z(-light.direction)))
             else:
                 distance = float(cfg.backdrop.dome_radius) / 2
                 node = pyrender.PointLight(color=light.color,
                                            intensity=light.intensity * distance**2)
                 pose = geometry.make_pose(np.eye(3), -light.direction * distance)
-                self.scene.add(node, pose=pose)
-        for node in suns:  # pyrender puts the shadow camera at centroid - direction * scale
+                self.point_nodes.append(self.scene.add(node, pose=pose))
+        self.shadows = bool(self.sun_nodes)
+        self.light_counts = (len(self.sun_nodes), len(self.point_nodes))
+        self._programs: dict = {}  # (primitive, flags, program flags) -> pyrender program
+        self._light_matrices: list[np.ndarray] = []  # per sun: shadow clip from world (4,4)
+        for node in self.sun_nodes:  # pyrender puts the shadow camera at centroid - direction * scale
             pose = self.scene.get_pose(node)
             eye = self.scene.centroid + pose[:3, 2] * self.scene.scale
             node.light.focus_view = tuple((pose[:3, :3].T @ -eye)[:2])
@@ -304,20 +340,184 @@ class SceneRenderer:
             self.scene.set_pose(node, pose)
         self.scene.set_pose(self.camera_node, cam_to_world @ OPENCV_TO_OPENGL)
 
+    # The three passes draw pyrender's uploaded meshes with pyrender's programs, framebuffers
+    # and shadow maps, in pyrender's draw order and GL state, but set each pass's per-frame
+    # uniforms (cameras, lights) once per program instead of once per primitive, and keep every
+    # uniform location and program: pyrender's own loop costs more CPU than llvmpipe's drawing.
+
+    def _begin(self, flags: int):
+        """The GL context made current at this scene's size, meshes and textures uploaded;
+        returns pyrender's renderer."""
+        offscreen = self.renderer
+        offscreen._platform.make_current()
+        renderer = offscreen._renderer
+        renderer.viewport_width, renderer.viewport_height = self.width, self.height
+        renderer._program_cache.light_counts = self.light_counts
+        renderer._update_context(self.scene, flags)
+        return renderer
+
+    def _program(self, renderer, primitive, flags: int, program_flags: int):
+        """pyrender's program for `primitive` in a pass, bound; kept per scene."""
+        key = (id(primitive), flags, program_flags)
+        program = self._programs.get(key)
+        if program is None:
+            program = self._programs[key] = renderer._get_primitive_program(
+                primitive, flags, program_flags)
+        program._bind()
+        return program
+
+    def _draw(self, primitive) -> None:
+        """One primitive, its buffers bound and unbound (pyrender's instanced draw call)."""
+        import ctypes
+
+        from OpenGL import GL as gl
+
+        primitive._bind()
+        instances = 1 if primitive.poses is None else len(primitive.poses)
+        gl.glDrawElementsInstanced(primitive.mode, primitive.indices.size, gl.GL_UNSIGNED_INT,
+                                   ctypes.c_void_p(0), instances)
+        primitive._unbind()
+
+    def _opaque_state(self, cull: bool) -> None:
+        """pyrender's state for an opaque primitive: replace-blending, filled, back faces culled
+        unless double-sided."""
+        from OpenGL import GL as gl
+
+        gl.glEnable(gl.GL_BLEND)
+        gl.glBlendFunc(gl.GL_ONE, gl.GL_ZERO)
+        gl.glPolygonMode(gl.GL_FRONT_AND_BACK, gl.GL_FILL)
+        gl.glDisable(gl.GL_PROGRAM_POINT_SIZE)
+        if cull:
+            gl.glEnable(gl.GL_CULL_FACE)
+            gl.glCullFace(gl.GL_BACK)
+        else:
+            gl.glDisable(gl.GL_CULL_FACE)
+
+    def _depth_pass(self, renderer, nodes, flags: int, program_flags: int, V, P,
+                    uniforms) -> None:
+        """Every primitive of `nodes` with back faces culled and no material (the shadow,
+        label and surface passes); uniforms(program, node) sets the per-node uniforms."""
+        cam_pos = self.scene.get_pose(self.scene.main_camera_node)[:3, 3]
+        framed = set()
+        program = None
+        self._opaque_state(cull=True)
+        for node in nodes:
+            pose = self.scene.get_pose(node)
+            for primitive in node.mesh.primitives:
+                program = self._program(renderer, primitive, flags, program_flags)
+                if program._program_id not in framed:
+                    framed.add(program._program_id)
+                    _set_uniform(program, "V", V)
+                    _set_uniform(program, "P", P)
+                    _set_uniform(program, "cam_pos", cam_pos)
+                uniforms(program, node)
+                _set_uniform(program, "M", pose)
+                self._draw(primitive)
+        if program is not None:
+            program._unbind()
+
+    def _bind_lights(self, program, shadow_unit: int | None) -> None:
+        """The lit pass's light uniforms: the sun(s) (directional, their shadow maps on
+        texture units from `shadow_unit`) and the point lights, in the description's order."""
+        from OpenGL import GL as gl
+
+        scene = self.scene
+        _set_uniform(program, "ambient_light", scene.ambient_light)
+        for i, node in enumerate(self.sun_nodes):
+            name = f"directional_lights[{i}]."
+            _set_uniform(program, name + "direction", -scene.get_pose(node)[:3, 2])
+            _set_uniform(program, name + "color", node.light.color)
+            _set_uniform(program, name + "intensity", node.light.intensity)
+            if shadow_unit is not None:
+                gl.glActiveTexture(gl.GL_TEXTURE0 + shadow_unit + i)
+                node.light.shadow_texture._bind()
+                _set_uniform(program, name + "shadow_map", shadow_unit + i)
+                _set_uniform(program, name + "light_matrix", self._light_matrices[i])
+        for i, node in enumerate(self.point_nodes):
+            name = f"point_lights[{i}]."
+            _set_uniform(program, name + "position", scene.get_pose(node)[:3, 3])
+            _set_uniform(program, name + "color", node.light.color)
+            _set_uniform(program, name + "intensity", node.light.intensity)
+
     def render_rgb(self, object_to_world: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
         """uint8 (H,W,3) lit image. object_to_world (K,4,4), cam_to_world (4,4) OpenCV."""
+        from OpenGL import GL as gl
+
         pyrender = _pyrender()
+        RenderFlags, ProgramFlags = pyrender.RenderFlags, pyrender.constants.ProgramFlags
         self._set_poses(object_to_world, cam_to_world)
-        flags = pyrender.RenderFlags.SHADOWS_DIRECTIONAL if self.shadows else 0
-        color, _ = self.renderer.render(self.scene, flags=flags)
-        return np.ascontiguousarray(color[..., :3])
+        flags = RenderFlags.OFFSCREEN | (RenderFlags.SHADOWS_DIRECTIONAL if self.shadows else 0)
+        renderer = self._begin(flags)
+        scene = self.scene
+        nodes = renderer._sorted_mesh_nodes(scene)
+        self._light_matrices = []
+        if self.shadows:  # shadow maps: depth from each sun's orthographic camera
+            for node in self.sun_nodes:
+                renderer._configure_shadow_mapping_viewport(node.light, flags)
+                V, P = renderer._get_light_cam_matrices(scene, node, flags)
+                self._depth_pass(renderer, nodes, flags, ProgramFlags.NONE, V, P,
+                                 lambda program, node: None)
+                self._light_matrices.append(P.dot(V))
+        renderer._configure_forward_pass_viewport(flags)
+        gl.glClearColor(*scene.bg_color)
+        gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
+        gl.glEnable(gl.GL_MULTISAMPLE)
+        V, P = renderer._get_camera_matrices(scene)
+        cam_pos = scene.get_pose(scene.main_camera_node)[:3, 3]
+        shadow_unit = 0 if self.shadows else None  # texture units: shadow maps, then material
+        material_unit = len(self.sun_nodes) if self.shadows else 0
+        framed = set()
+        program = None
+        gl.glPolygonMode(gl.GL_FRONT_AND_BACK, gl.GL_FILL)
+        for node in nodes:
+            pose = scene.get_pose(node)
+            for primitive in node.mesh.primitives:
+                program = self._program(renderer, primitive, flags, ProgramFlags.USE_MATERIAL)
+                if program._program_id not in framed:
+                    framed.add(program._program_id)
+                    _set_uniform(program, "V", V)
+                    _set_uniform(program, "P", P)
+                    _set_uniform(program, "cam_pos", cam_pos)
+                    self._bind_lights(program, shadow_unit)
+                material = primitive.material
+                gl.glActiveTexture(gl.GL_TEXTURE0 + material_unit)
+                material.baseColorTexture._bind()
+                _set_uniform(program, "material.base_color_texture", material_unit)
+                _set_uniform(program, "material.base_color_factor", material.baseColorFactor)
+                _set_uniform(program, "material.roughness_factor", material.roughnessFactor)
+                self._opaque_state(cull=not material.doubleSided)
+                _set_uniform(program, "M", pose)
+                self._draw(primitive)
+        if program is not None:
+            program._unbind()
+        width, height = renderer._main_fb_dims
+        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
+        gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, renderer._main_fb)
+        gl.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, gl.GL_COLOR_BUFFER_BIT,
+                             gl.GL_LINEAR)
+        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, renderer._main_fb)
+        data = gl.glReadPixels(0, 0, width, height, gl.GL_RGB, gl.GL_UNSIGNED_BYTE)
+        color = np.frombuffer(data, np.uint8).reshape(height, width, 3)
+        return np.ascontiguousarray(color[::-1])  # OpenGL's rows run bottom-up
 
     def render_labels(self, object_to_world: np.ndarray, cam_to_world: np.ndarray):
         """z-depth float32 (H,W) and segmentation int32 (H,W) at the pixel centres."""
+        from OpenGL import GL as gl
+
         pyrender = _pyrender()
         self._set_poses(object_to_world, cam_to_world)
-        color, depth = self.renderer.render(self.scene, flags=pyrender.RenderFlags.SEG,
-                                            seg_node_map=self.seg_colors)
+        flags = pyrender.RenderFlags.OFFSCREEN | pyrender.RenderFlags.SEG
+        renderer = self._begin(flags)
+        renderer._configure_forward_pass_viewport(flags)
+        gl.glClearColor(0.0, 0.0, 0.0, 1.0)
+        gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
+        gl.glDisable(gl.GL_MULTISAMPLE)  # every pixel: the surface through its centre
+        V, P = renderer._get_camera_matrices(self.scene)
+        self._depth_pass(renderer, renderer._sorted_mesh_nodes(self.scene), flags,
+                         pyrender.constants.ProgramFlags.USE_MATERIAL, V, P,
+                         lambda program, node: _set_uniform(program, "color",
+                                                            self.seg_colors[node] / 255.0))
+        color, depth = renderer._read_main_framebuffer(self.scene, flags)
         segmentation = color[..., 0].astype(np.int32) + 256 * color[..., 1].astype(np.int32)
         return depth.astype(np.float32), segmentation
 
@@ -333,11 +533,7 @@ class SceneRenderer:
 
         pyrender = _pyrender()
         self._set_poses(object_to_world, cam_to_world)
-        offscreen = self.renderer
-        offscreen._platform.make_current()
-        renderer = offscreen._renderer
-        flags = pyrender.RenderFlags.SEG  # pyrender's label-pass state: no material, back faces culled
-        renderer._update_context(self.scene, flags)
+        renderer = self._begin(pyrender.RenderFlags.SEG)  # the label pass's context
         gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, _surface_target(self.width, self.height))
         gl.glDrawBuffers(2, [gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1])
         gl.glViewport(0, 0, self.width, self.height)
@@ -349,21 +545,15 @@ class SceneRenderer:
         gl.glClearColor(0.0, 0.0, 0.0, 0.0)
         gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
         V, P = renderer._get_camera_matrices(self.scene)
-        program = None
-        for node in renderer._sorted_mesh_nodes(self.scene):
+
+        def box(program, node):
             low, scale = self.boxes[node]
-            for primitive in node.mesh.primitives:
-                program = renderer._get_primitive_program(primitive, pyrender.RenderFlags.FLAT,
-                                                          pyrender.constants.ProgramFlags.NONE)
-                program._bind()
-                program.set_uniform("V", V)
-                program.set_uniform("P", P)
-                program.set_uniform("box_min", low)
-                program.set_uniform("box_scale", scale)
-                renderer._bind_and_draw_primitive(primitive, self.scene.get_pose(node), program,
-                                                  flags)
-        if program is not None:
-            program._unbind()
+            _set_uniform(program, "box_min", low)
+            _set_uniform(program, "box_scale", scale)
+
+        self._depth_pass(renderer, renderer._sorted_mesh_nodes(self.scene),
+                         pyrender.RenderFlags.FLAT, pyrender.constants.ProgramFlags.NONE, V, P,
+                         box)
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _surface_target(self.width, self.height))
         images = []
         for attachment in (gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1):

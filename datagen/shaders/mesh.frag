@@ -3,7 +3,9 @@
 // highlight, directional lights with a 2x2 percentage-closer shadow lookup, inverse-square point
 // lights and ambient light. Cheaper than pyrender's PBR shader (whose shadow filter takes 36
 // texture reads per light), which matters on Mesa's software renderer. Uniform names follow
-// pyrender's, so pyrender binds lights, materials and shadow maps unchanged.
+// pyrender's (datagen/render.py binds them). The numbers of lights are compile-time defines
+// (NUM_DIRECTIONAL_LIGHTS, NUM_POINT_LIGHTS), so the loops unroll and every shadow sampler is
+// indexed by a constant.
 
 struct DirectionalLight {
     vec3 direction;  // the direction the light travels
@@ -31,8 +33,6 @@ struct Material {
 
 uniform DirectionalLight directional_lights[MAX_DIRECTIONAL_LIGHTS];
 uniform PointLight point_lights[MAX_POINT_LIGHTS];
-uniform int n_directional_lights;
-uniform int n_point_lights;
 uniform vec3 ambient_light;
 uniform vec3 cam_pos;
 uniform Material material;
@@ -90,7 +90,7 @@ void main()
     float specular = 0.25 * (1.0 - material.roughness_factor);
 
     vec3 color = ambient_light * base.rgb;
-    for (int i = 0; i < n_directional_lights; i++) {
+    for (int i = 0; i < NUM_DIRECTIONAL_LIGHTS; i++) {
         vec3 l = -normalize(directional_lights[i].direction);
         float n_dot_l = max(dot(n, l), 0.0);
         float lit = 1.0;
@@ -104,7 +104,7 @@ void main()
         color += lit * directional_lights[i].intensity * directional_lights[i].color
                  * (base.rgb / PI * n_dot_l + highlight * n_dot_l);
     }
-    for (int i = 0; i < n_point_lights; i++) {
+    for (int i = 0; i < NUM_POINT_LIGHTS; i++) {
         vec3 offset = point_lights[i].position - frag_position;
         float dist2 = dot(offset, offset);
         vec3 l = offset * inversesqrt(dist2);
