@@ -55,10 +55,14 @@ def pattern(rng: np.random.Generator, size: int, kind: str) -> np.ndarray:
     if kind == "cells":  # Voronoi cells with wrap-around distances, one random value per cell
         centres = rng.random((repeats * repeats, 2)).astype(np.float32)
         values = rng.random(repeats * repeats).astype(np.float32)
-        dx = np.abs(xs[..., None] - centres[:, 0])
-        dy = np.abs(ys[..., None] - centres[:, 1])
-        dist = np.minimum(dx, 1 - dx) ** 2 + np.minimum(dy, 1 - dy) ** 2  # (S,S,C)
-        return values[np.argmin(dist, axis=-1)]
+        nearest = np.zeros((size, size), np.intp)  # the first nearest centre, as argmin picks
+        best = np.full((size, size), np.inf, np.float32)
+        for c, (cx, cy) in enumerate(centres):  # one (S,S) slice at a time, not (S,S,C)
+            dx, dy = np.abs(xs - cx), np.abs(ys - cy)
+            dist = np.minimum(dx, 1 - dx) ** 2 + np.minimum(dy, 1 - dy) ** 2  # (S,S)
+            closer = dist < best
+            nearest[closer], best[closer] = c, dist[closer]
+        return values[nearest]
     if kind == "noise":
         return fractal_noise(rng, size, octaves=3, base_cells=16)
     raise ValueError(f"unknown pattern {kind!r}; choose one of {PATTERNS}")
