@@ -148,31 +148,70 @@ def _set_uniform(program, name: str, value) -> None:
         gl.glUniform1f(location, float(value))
 
 
-_SURFACE_TARGET: dict = {}  # the process's surface framebuffer: size, framebuffer, renderbuffers
+_LABEL_TARGET: dict = {}  # the process's label framebuffer: size, framebuffer, renderbuffers
 
 
-def _surface_target(width: int, height: int) -> int:
-    """The framebuffer of the surface pass at (height, width): two float32 RGBA colour
-    attachments (normal, object coordinates) and a 24-bit depth buffer like pyrender's. One per
-    process (in its one EGL context), made again when the size changes."""
+def _label_target(width: int, height: int) -> int:
+    """The single-sampled framebuffer of the label and surface passes at (height, width):
+    colour attachment 0 RGBA8 (segment colours), 1 and 2 float32 RGBA (normals, object
+    coordinates) and a 24-bit depth buffer like pyrender's. One per process (in its one EGL
+    context), made again when the size changes. (pyrender draws labels into its 4x multisampled
+    framebuffer with multisampling off and copies them out: the same pixels, at more cost.)"""
     from OpenGL import GL as gl
 
-    if _SURFACE_TARGET.get("size") != (width, height):
-        if _SURFACE_TARGET:
-            gl.glDeleteFramebuffers(1, [_SURFACE_TARGET["framebuffer"]])
-            gl.glDeleteRenderbuffers(3, _SURFACE_TARGET["renderbuffers"])
-        buffers = [int(b) for b in gl.glGenRenderbuffers(3)]
+    if _LABEL_TARGET.get("size") != (width, height):
+        if _LABEL_TARGET:
+            gl.glDeleteFramebuffers(1, [_LABEL_TARGET["framebuffer"]])
+            gl.glDeleteRenderbuffers(4, _LABEL_TARGET["renderbuffers"])
+        buffers = [int(b) for b in gl.glGenRenderbuffers(4)]
         framebuffer = int(gl.glGenFramebuffers(1))
         gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, framebuffer)
-        formats = (gl.GL_RGBA32F, gl.GL_RGBA32F, gl.GL_DEPTH_COMPONENT24)
-        attachments = (gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1, gl.GL_DEPTH_ATTACHMENT)
+        formats = (gl.GL_RGBA8, gl.GL_RGBA32F, gl.GL_RGBA32F, gl.GL_DEPTH_COMPONENT24)
+        attachments = (gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1, gl.GL_COLOR_ATTACHMENT2,
+                       gl.GL_DEPTH_ATTACHMENT)
         for buffer, storage, attachment in zip(buffers, formats, attachments):
             gl.glBindRenderbuffer(gl.GL_RENDERBUFFER, buffer)
             gl.glRenderbufferStorage(gl.GL_RENDERBUFFER, storage, width, height)
             gl.glFramebufferRenderbuffer(gl.GL_DRAW_FRAMEBUFFER, attachment, gl.GL_RENDERBUFFER,
                                          buffer)
-        _SURFACE_TARGET.update(size=(width, height), framebuffer=framebuffer, renderbuffers=buffers)
-    return _SURFACE_TARGET["framebuffer"]
+        _LABEL_TARGET.update(size=(width, height), framebuffer=framebuffer, renderbuffers=buffers)
+    return _LABEL_TARGET["framebuffer"]
+
+
+def _read_float_rgb(attachment: int, width: int, height: int) -> np.ndarray:
+    """(H,W,3) float32 of a colour attachment of the bound read framebuffer, top row first."""
+    from OpenGL import GL as gl
+
+    gl.glReadBuffer(attachment)
+    data = gl.glReadPixels(0, 0, width, height, gl.GL_RGB, gl.GL_FLOAT)
+    return np.ascontiguousarray(np.frombuffer(data, np.float32).reshape(height, width, 3)[::-1])
+
+
+def _begin_label_target(width: int, height: int, attachments: list[int]) -> None:
+    """Draw into `attachments` of the label framebuffer, cleared (colour 0, depth 1), with the
+    label pass's depth test and no multisampling."""
+    from OpenGL import GL as gl
+
+    gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, _label_target(width, height))
+    gl.glDrawBuffers(len(attachments), attachments)
+    gl.glViewport(0, 0, width, height)
+    gl.glEnable(gl.GL_DEPTH_TEST)
+    gl.glDepthMask(gl.GL_TRUE)
+    gl.glDepthFunc(gl.GL_LESS)
+    gl.glDepthRange(0.0, 1.0)
+    gl.glDisable(gl.GL_MULTISAMPLE)
+    gl.glClearColor(0.0, 0.0, 0.0, 0.0)
+    gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
+
+
+def linear_depth(window_depth: np.ndarray, znear: float, zfar: float) -> np.ndarray:
+    """z-depth (H,W) float32 from OpenGL window depths in [0,1] (1: nothing drawn -> 0), by
+    pyrender's formula and float32 operations."""
+    depth = 2.0 * window_depth - 1.0
+    background = window_depth == 1.0
+    depth[~background] = (2.0 * znear * zfar) / (zfar + znear - depth[~background] * (zfar - znear))
+    depth[background] = 0.0
+    return depth
 
 
 def _offscreen_for(width: int, height: int, shadow_map_size: int):
@@ -318,6 +357,7 @@ class SceneRenderer:
         self.shadows = bool(self.sun_nodes)
         self.light_counts = (len(self.sun_nodes), len(self.point_nodes))
         self._programs: dict = {}  # (primitive, flags, program flags) -> pyrender program
+        self._uploaded: set[int] = set()  # render flags whose meshes and textures are uploaded
         self._light_matrices: list[np.ndarray] = []  # per sun: shadow clip from world (4,4)
         for node in self.sun_nodes:  # pyrender puts the shadow camera at centroid - direction * scale
             pose = self.scene.get_pose(node)
@@ -353,7 +393,9 @@ class SceneRenderer:
         renderer = offscreen._renderer
         renderer.viewport_width, renderer.viewport_height = self.width, self.height
         renderer._program_cache.light_counts = self.light_counts
-        renderer._update_context(self.scene, flags)
+        if flags not in self._uploaded:  # the meshes never change: upload once per kind of pass
+            renderer._update_context(self.scene, flags)
+            self._uploaded.add(flags)
         return renderer
 
     def _program(self, renderer, primitive, flags: int, program_flags: int):
@@ -506,20 +548,23 @@ class SceneRenderer:
 
         pyrender = _pyrender()
         self._set_poses(object_to_world, cam_to_world)
-        flags = pyrender.RenderFlags.OFFSCREEN | pyrender.RenderFlags.SEG
+        flags = pyrender.RenderFlags.SEG
         renderer = self._begin(flags)
-        renderer._configure_forward_pass_viewport(flags)
-        gl.glClearColor(0.0, 0.0, 0.0, 1.0)
-        gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
-        gl.glDisable(gl.GL_MULTISAMPLE)  # every pixel: the surface through its centre
+        _begin_label_target(self.width, self.height, [gl.GL_COLOR_ATTACHMENT0])
         V, P = renderer._get_camera_matrices(self.scene)
         self._depth_pass(renderer, renderer._sorted_mesh_nodes(self.scene), flags,
                          pyrender.constants.ProgramFlags.USE_MATERIAL, V, P,
                          lambda program, node: _set_uniform(program, "color",
                                                             self.seg_colors[node] / 255.0))
-        color, depth = renderer._read_main_framebuffer(self.scene, flags)
-        segmentation = color[..., 0].astype(np.int32) + 256 * color[..., 1].astype(np.int32)
-        return depth.astype(np.float32), segmentation
+        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
+        gl.glReadBuffer(gl.GL_COLOR_ATTACHMENT0)
+        data = gl.glReadPixels(0, 0, self.width, self.height, gl.GL_RGB, gl.GL_UNSIGNED_BYTE)
+        colour = np.frombuffer(data, np.uint8).reshape(self.height, self.width, 3)[::-1]
+        segmentation = colour[..., 0].astype(np.int32) + 256 * colour[..., 1].astype(np.int32)
+        data = gl.glReadPixels(0, 0, self.width, self.height, gl.GL_DEPTH_COMPONENT, gl.GL_FLOAT)
+        window = np.frombuffer(data, np.float32).reshape(self.height, self.width)[::-1]
+        camera = self.scene.main_camera_node.camera
+        return linear_depth(window, camera.znear, camera.zfar), segmentation
 
     def render_surface(self, object_to_world: np.ndarray,
                        cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -534,16 +579,8 @@ class SceneRenderer:
         pyrender = _pyrender()
         self._set_poses(object_to_world, cam_to_world)
         renderer = self._begin(pyrender.RenderFlags.SEG)  # the label pass's context
-        gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, _surface_target(self.width, self.height))
-        gl.glDrawBuffers(2, [gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1])
-        gl.glViewport(0, 0, self.width, self.height)
-        gl.glEnable(gl.GL_DEPTH_TEST)
-        gl.glDepthMask(gl.GL_TRUE)
-        gl.glDepthFunc(gl.GL_LESS)
-        gl.glDepthRange(0.0, 1.0)
-        gl.glDisable(gl.GL_MULTISAMPLE)
-        gl.glClearColor(0.0, 0.0, 0.0, 0.0)
-        gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
+        _begin_label_target(self.width, self.height,
+                            [gl.GL_COLOR_ATTACHMENT1, gl.GL_COLOR_ATTACHMENT2])
         V, P = renderer._get_camera_matrices(self.scene)
 
         def box(program, node):
@@ -554,14 +591,9 @@ class SceneRenderer:
         self._depth_pass(renderer, renderer._sorted_mesh_nodes(self.scene),
                          pyrender.RenderFlags.FLAT, pyrender.constants.ProgramFlags.NONE, V, P,
                          box)
-        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _surface_target(self.width, self.height))
-        images = []
-        for attachment in (gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1):
-            gl.glReadBuffer(attachment)
-            data = gl.glReadPixels(0, 0, self.width, self.height, gl.GL_RGB, gl.GL_FLOAT)
-            image = np.frombuffer(data, np.float32).reshape(self.height, self.width, 3)
-            images.append(np.ascontiguousarray(image[::-1]))  # OpenGL's rows run bottom-up
-        return images[0], images[1]
+        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
+        return (_read_float_rgb(gl.GL_COLOR_ATTACHMENT1, self.width, self.height),
+                _read_float_rgb(gl.GL_COLOR_ATTACHMENT2, self.width, self.height))
 
 
 def shutter_times(frame: int, shutter: float, num_samples: int) -> np.ndarray:
