@@ -1,18 +1,20 @@
-"""Scene generation speed: seconds per scene by stage, scenes per hour, peak memory per worker;
-CPU seconds per scene against other commits, and the cost of the optional layers.
+"""Scene generation cost: CPU seconds per scene by part, scenes per hour, peak memory per
+worker; CPU seconds per scene against other commits, and the cost of the optional layers.
 
     .venv/bin/python benchmarks/bench_datagen.py [--scenes 3] [--presets movi-e movi-f]
-        [--resolution 256] [--frames 24] [--workers 2]
+        [--resolution 256] [--frames 24] [--workers 2] [--all-layers]
     .venv/bin/python benchmarks/bench_datagen.py --against /tmp/prev [--rounds 5] [--scenes 2]
     .venv/bin/python benchmarks/bench_datagen.py --against /tmp/old --cli --presets movi-f
 
 For each preset: one warm-up scene (EGL context, first asset loads), then the median over
-`--scenes` scenes of wall seconds per stage (sample, physics, render, labels) and of the whole
-scene, plus CPU seconds (all threads, Mesa's rasterizer included). Ratios are against the first
-preset (movi-e) in the same run. The lit pass is also timed with pyrender's stock PBR shaders as
-the baseline for datagen's own shaders. With `--workers` > 0, that many processes generate scenes
-in parallel to give scenes per hour with all cores. Encoding is measured by the shard writer's
-benchmark.
+`--scenes` scenes of the CPU seconds (all threads, Mesa's rasterizer included) of each part of
+`generate_scene` (`datagen.generate.PARTS`: sample, physics, render setup, the lit, label and
+surface passes, flow, tracks, instances, events) and of encoding the scene into its shard members
+(`datagen.shards.encode_scene`), with the whole scene's CPU and wall seconds. `--all-layers`
+turns every optional layer on (`layers.*=true`). The lit pass is also timed through pyrender's
+own renderer with its stock PBR shaders, the baseline for datagen's shaders and draw loop. With
+`--workers` > 0, that many processes generate scenes in parallel to give scenes per hour with
+all cores.
 
 `--against TREE...`: source trees of other commits (`git archive REV | tar -x -C TREE`, plus a
 link `TREE/c4d_configs -> configs` for trees whose presets are installed as that package). Each
@@ -43,7 +45,6 @@ from pathlib import Path
 
 import numpy as np
 
-STAGES = ("sample", "physics", "render", "labels")
 ROOT = Path(__file__).resolve().parents[1]
 ALL_LAYERS = ["layers.normal=true", "layers.object_coordinates=true", "layers.instances=true",
               "layers.events=true"]
@@ -66,7 +67,8 @@ def preset_config(preset: str, resolution: int, frames: int, extra: list[str] = 
 
 
 def time_preset(preset: str, args, extra: list[str] = ()) -> dict:
-    """Median seconds per stage, wall and CPU seconds per scene of `args.scenes` scenes."""
+    """Median CPU seconds per part, wall and CPU seconds per scene of `args.scenes` scenes."""
+    from datagen import shards
     from datagen.assets import load_asset_library
     from datagen.generate import generate_scene
 
@@ -80,13 +82,16 @@ def time_preset(preset: str, args, extra: list[str] = ()) -> dict:
         scene = generate_scene(cfg, index, assets, timings)
         timings["total"] = time.perf_counter() - wall
         timings["cpu"] = time.process_time() - cpu
+        start = time.process_time()
+        shards.encode_scene(scene, shards.scene_key(str(cfg.split), index))
+        timings["encode"] = time.process_time() - start
         timings["blur_samples"] = scene.meta["blur_samples"]
         rows.append(timings)
-    return {key: statistics.median(row[key] for row in rows) for key in rows[0]}
+    return {key: statistics.median(row.get(key, 0.0) for row in rows) for key in rows[0]}
 
 
 def time_lit_pass(args) -> dict:
-    """Median ms per lit frame with datagen's shaders and with pyrender's stock shaders."""
+    """Median ms per lit frame: datagen's pass, and pyrender's renderer with its stock shaders."""
     from datagen import render
     from datagen.assets import load_asset_library
     from datagen.generate import describe_and_simulate
@@ -97,18 +102,25 @@ def time_lit_pass(args) -> dict:
     renderer = render.SceneRenderer(description, sim.placed, assets, cfg)
     times = np.arange(description.num_frames, dtype=np.float64)
     poses, cameras = sim.poses_at(times), description.camera.pose_at(times, len(times))
+    pyrender = render._pyrender()
     offscreen = renderer.renderer._renderer
     ours = offscreen._program_cache
-    stock = render._pyrender().shader_program.ShaderProgramCache()
+
+    def stock_frame(t):  # pyrender's own forward pass, shadow pass and PBR shaders
+        renderer._set_poses(poses[:, t], cameras[t])
+        renderer.renderer.render(renderer.scene, flags=pyrender.RenderFlags.SHADOWS_DIRECTIONAL)
+
     result = {}
-    for name, cache in (("pyrender stock shaders", stock), ("datagen shaders", ours)):
-        offscreen._program_cache = cache
-        renderer.render_rgb(poses[:, 0], cameras[0])
+    for name, frame in (("pyrender, stock shaders", stock_frame),
+                        ("datagen", lambda t: renderer.render_rgb(poses[:, t], cameras[t]))):
+        offscreen._program_cache = ours if name == "datagen" else \
+            pyrender.shader_program.ShaderProgramCache()
+        frame(0)
         frame_ms = []
         for t in range(len(times)):
-            start = time.perf_counter()
-            renderer.render_rgb(poses[:, t], cameras[t])
-            frame_ms.append(1000 * (time.perf_counter() - start))
+            start = time.process_time()
+            frame(t)
+            frame_ms.append(1000 * (time.process_time() - start))
         result[name] = statistics.median(frame_ms)
     offscreen._program_cache = ours
     return result
@@ -204,6 +216,7 @@ def main() -> None:
     parser.add_argument("--against", nargs="+", metavar="TREE", help="source trees of other commits")
     parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds with --against")
     parser.add_argument("--cli", action="store_true", help="with --against: time `c4d datagen` runs")
+    parser.add_argument("--all-layers", action="store_true", help="every optional layer on")
     parser.add_argument("--child", metavar="PRESET", help=argparse.SUPPRESS)  # one --against run
     args, extra = parser.parse_known_args()
     if extra and not args.child:
@@ -214,21 +227,24 @@ def main() -> None:
     if args.against:
         compare_trees(args)
         return
+    from datagen.generate import PARTS
+
+    extra = ALL_LAYERS if args.all_layers else []
     print(f"{args.resolution}x{args.resolution} x {args.frames} frames, median of {args.scenes} "
-          f"scenes, one worker; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'preset':16s}" + "".join(f"{s:>9s}" for s in STAGES)
-          + f"{'total s':>9s}{'cpu s':>8s}{'blur n':>8s}{'x movi-e':>10s}")
-    baseline = None
+          f"scenes, one worker{', every optional layer on' if extra else ''}; CPU seconds per "
+          f"scene by part; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    columns = [*PARTS, "encode"]
+    print("| preset | " + " | ".join(columns) + " | scene CPU s | + encode | wall s | blur n |")
+    print("|---" * (len(columns) + 5) + "|")
     for preset in args.presets:
-        row = time_preset(preset, args)
-        baseline = baseline or row["total"]
-        print(f"{preset:16s}" + "".join(f"{row[s]:9.3f}" for s in STAGES)
-              + f"{row['total']:9.2f}{row['cpu']:8.2f}{row['blur_samples']:8.0f}"
-              + f"{row['total'] / baseline:10.2f}")
+        row = time_preset(preset, args, extra)
+        print(f"| {preset} | " + " | ".join(f"{row.get(c, 0.0):.3f}" for c in columns)
+              + f" | {row['cpu']:.2f} | {row['cpu'] + row['encode']:.2f} | {row['total']:.2f}"
+              f" | {row['blur_samples']:.0f} |")
     lit = time_lit_pass(args)
-    stock = lit["pyrender stock shaders"]
+    stock = lit["pyrender, stock shaders"]
     for name, ms in lit.items():
-        print(f"lit pass, {name:24s} {ms:7.1f} ms/frame  (x{ms / stock:.2f} of stock)")
+        print(f"lit pass, {name:24s} {ms:7.1f} CPU ms/frame  (x{ms / stock:.2f} of pyrender)")
     if args.workers > 0:
         par = time_parallel(args.presets[0], args)
         print(f"{args.presets[0]} with {args.workers} workers: {par['scenes_per_hour']:.0f} "

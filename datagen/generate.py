@@ -39,16 +39,37 @@ def scene_rngs(seed: int, scene_index: int) -> dict[str, np.random.Generator]:
             "tracks": np.random.default_rng(children[1])}
 
 
+# The parts of a scene's cost that `generate_scene(timings=...)` reports, in CPU seconds of the
+# process (all threads, Mesa's rasterizer included): drawing the description, physics, building
+# the renderer (meshes, procedural textures, upload), the lit pass (with its shadow maps and
+# motion-blur sub-frames), the label pass (depth, segmentation), the surface pass (normals,
+# object coordinates), optical flow, point tracks, and the instance and event records.
+PARTS = ("sample", "physics", "render_setup", "render_rgb", "render_labels", "render_surface",
+         "flow", "tracks", "instances", "events")
+
+
+class _Clock:
+    """CPU seconds per part, added into `timings` (a dict, or None to keep nothing)."""
+
+    def __init__(self, timings: dict | None):
+        self.timings = timings
+        self.start = time.process_time()
+
+    def lap(self, part: str) -> None:
+        now = time.process_time()
+        if self.timings is not None:
+            self.timings[part] = self.timings.get(part, 0.0) + now - self.start
+        self.start = now
+
+
 def describe_and_simulate(cfg, scene_index: int, assets: AssetLibrary,
                           timings: dict | None = None) -> tuple[SceneDescription, SimulationResult]:
     """The first two stages: the scene's description and its physics (poses at every step)."""
-    clock = {} if timings is None else timings
-    start = time.perf_counter()
+    clock = _Clock(timings)
     description = sample_scene(cfg, scene_rngs(cfg.seed, scene_index)["scene"], assets)
-    clock["sample"] = time.perf_counter() - start
-    start = time.perf_counter()
+    clock.lap("sample")
     sim = simulate(description, assets, cfg)
-    clock["physics"] = time.perf_counter() - start
+    clock.lap("physics")
     return description, sim
 
 
@@ -57,13 +78,12 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
     """Scene `scene_index` of preset `cfg` (a DictConfig from `load_config("datagen", ...)`).
 
     `assets`: a library from `load_asset_library(cfg)` to reuse across scenes (built if None).
-    `timings`: if a dict is given, it receives seconds per stage (sample, physics, render, labels).
+    `timings`: if a dict is given, it receives CPU seconds per part (`PARTS`).
     """
-    clock = {} if timings is None else timings
     assets = load_asset_library(cfg) if assets is None else assets
-    description, sim = describe_and_simulate(cfg, scene_index, assets, clock)
+    description, sim = describe_and_simulate(cfg, scene_index, assets, timings)
 
-    start = time.perf_counter()
+    clock = _Clock(timings)
     num_frames, height, width = description.num_frames, description.height, description.width
     frame_times = np.arange(num_frames, dtype=np.float64)
     object_to_world = sim.poses_at(frame_times)  # (K,T,4,4)
@@ -80,11 +100,14 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
     normal = np.zeros((num_frames, height, width, 3), np.float32) if surface else None
     coordinates = np.zeros((num_frames, height, width, 3), np.float32) if surface else None
     num_samples = render.num_blur_samples(description.motion_blur, cfg)
+    clock.lap("render_setup")
     for t in range(num_frames):
         depth[t], segmentation[t] = renderer.render_labels(object_to_world[:, t], cam_to_world[t])
+        clock.lap("render_labels")
         if surface:
             normal[t], coordinates[t] = renderer.render_surface(object_to_world[:, t],
                                                                 cam_to_world[t])
+            clock.lap("render_surface")
         if num_samples == 1:
             rgb[t] = renderer.render_rgb(object_to_world[:, t], cam_to_world[t])
         else:
@@ -92,14 +115,15 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
             rgb[t] = render.render_blurred(
                 renderer, sim.poses_at,
                 lambda ts: description.camera.pose_at(ts, num_frames), times)
-    clock["render"] = time.perf_counter() - start
+        clock.lap("render_rgb")
 
-    start = time.perf_counter()
     flow_fwd, flow_bwd = annotate.optical_flow(depth, segmentation, intrinsics, cam_to_world,
                                                object_to_world)
+    clock.lap("flow")
     threshold = float(cfg.mobility_threshold)
     tracks = annotate.point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
                                    scene_rngs(cfg.seed, scene_index)["tracks"], cfg, threshold)
+    clock.lap("tracks")
     instances = events = None
     if layers.instances:
         boxes = np.stack([assets.get(description.objects[i].asset_id)
@@ -110,10 +134,11 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
             segmentation, intrinsics, cam_to_world, object_to_world, boxes,
             sim.velocities[:, frames], sim.angular_velocities[:, frames],
             np.array([description.objects[i].tossed for i in sim.placed], bool))
+        clock.lap("instances")
     if layers.events:
         events = annotate.collision_events(sim.contacts, sim.steps_per_frame, K,
                                            lambda ts: description.camera.pose_at(ts, num_frames))
-    clock["labels"] = time.perf_counter() - start
+        clock.lap("events")
 
     visible_pixels = (instances["visible_pixels"].sum(axis=1) if instances is not None else
                       np.bincount(segmentation.ravel(), minlength=len(sim.placed) + 1)[1:])
