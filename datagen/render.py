@@ -4,11 +4,15 @@ surface normals and object coordinates.
 - RGB: lit by a shadow-casting sun, a fill light and ambient light, 4x multisampled, with
   datagen's own lit-pass shaders (datagen/shaders/: textured Lambert + Blinn-Phong, 4-tap shadow
   filter), several times cheaper than pyrender's PBR shader on a software renderer.
-- Labels: z-depth and instance segmentation from pyrender's segmentation pass, which renders
-  without multisampling, so every pixel holds the surface hit by the ray through its centre.
+- Labels: z-depth and instance segmentation with pyrender's segmentation shaders, drawn into a
+  single-sampled framebuffer of the process's own, so every pixel holds the surface hit by the
+  ray through its centre.
 - Surface (optional layers): one more pass like the label pass (same pixels, same culling) with
   datagen's surface shaders writing the world-space shading normal and the object coordinates
-  into two float32 attachments of the process's own framebuffer.
+  into two float32 attachments of the same framebuffer.
+- pyrender holds the meshes, textures, programs and shadow maps; datagen's own draw loops set
+  each frame's uniforms once per program (pyrender's loop costs more CPU than llvmpipe's
+  drawing: docs/PERFORMANCE.md).
 - Motion blur (MOVi-F): the average of sub-frame renders at object poses interpolated between
   physics steps and at the camera pose of the same instant, over a shutter centred on the frame
   time. Labels are always rendered sharp at the frame time.
