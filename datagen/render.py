@@ -362,7 +362,6 @@ class SceneRenderer:
         self.light_counts = (len(self.sun_nodes), len(self.point_nodes))
         self._programs: dict = {}  # (primitive, flags, program flags) -> pyrender program
         self._uploaded: set[int] = set()  # render flags whose meshes and textures are uploaded
-        self._light_matrices: list[np.ndarray] = []  # per sun: shadow clip from world (4,4)
         for node in self.sun_nodes:  # pyrender puts the shadow camera at centroid - direction * scale
             pose = self.scene.get_pose(node)
             eye = self.scene.centroid + pose[:3, 2] * self.scene.scale
@@ -439,14 +438,13 @@ class SceneRenderer:
         else:
             gl.glDisable(gl.GL_CULL_FACE)
 
-    def _depth_pass(self, renderer, nodes, flags: int, program_flags: int, V, P,
-                    uniforms) -> None:
-        """Every primitive of `nodes` with back faces culled and no material (the shadow,
-        label and surface passes); uniforms(program, node) sets the per-node uniforms."""
+    def _pass(self, renderer, nodes, flags: int, program_flags: int, V, P, per_program=None,
+              per_primitive=None) -> None:
+        """Every primitive of `nodes` in their order: V, P, cam_pos and per_program(program) once
+        per program, then per_primitive(program, node, primitive) and the model matrix M."""
         cam_pos = self.scene.get_pose(self.scene.main_camera_node)[:3, 3]
         framed = set()
         program = None
-        self._opaque_state(cull=True)
         for node in nodes:
             pose = self.scene.get_pose(node)
             for primitive in node.mesh.primitives:
@@ -456,15 +454,19 @@ class SceneRenderer:
                     _set_uniform(program, "V", V)
                     _set_uniform(program, "P", P)
                     _set_uniform(program, "cam_pos", cam_pos)
-                uniforms(program, node)
+                    if per_program is not None:
+                        per_program(program)
+                if per_primitive is not None:
+                    per_primitive(program, node, primitive)
                 _set_uniform(program, "M", pose)
                 self._draw(primitive)
         if program is not None:
             program._unbind()
 
-    def _bind_lights(self, program, shadow_unit: int | None) -> None:
+    def _bind_lights(self, program, shadow_unit: int | None, light_matrices: list) -> None:
         """The lit pass's light uniforms: the sun(s) (directional, their shadow maps on
-        texture units from `shadow_unit`) and the point lights, in the description's order."""
+        texture units from `shadow_unit`, shadow clip from world (4,4) each in
+        `light_matrices`) and the point lights, in the description's order."""
         from OpenGL import GL as gl
 
         scene = self.scene
@@ -478,7 +480,7 @@ class SceneRenderer:
                 gl.glActiveTexture(gl.GL_TEXTURE0 + shadow_unit + i)
                 node.light.shadow_texture._bind()
                 _set_uniform(program, name + "shadow_map", shadow_unit + i)
-                _set_uniform(program, name + "light_matrix", self._light_matrices[i])
+                _set_uniform(program, name + "light_matrix", light_matrices[i])
         for i, node in enumerate(self.point_nodes):
             name = f"point_lights[{i}]."
             _set_uniform(program, name + "position", scene.get_pose(node)[:3, 3])
@@ -496,46 +498,34 @@ class SceneRenderer:
         renderer = self._begin(flags)
         scene = self.scene
         nodes = renderer._sorted_mesh_nodes(scene)
-        self._light_matrices = []
+        light_matrices = []
         if self.shadows:  # shadow maps: depth from each sun's orthographic camera
             for node in self.sun_nodes:
                 renderer._configure_shadow_mapping_viewport(node.light, flags)
                 V, P = renderer._get_light_cam_matrices(scene, node, flags)
-                self._depth_pass(renderer, nodes, flags, ProgramFlags.NONE, V, P,
-                                 lambda program, node: None)
-                self._light_matrices.append(P.dot(V))
+                self._opaque_state(cull=True)
+                self._pass(renderer, nodes, flags, ProgramFlags.NONE, V, P)
+                light_matrices.append(P.dot(V))
         renderer._configure_forward_pass_viewport(flags)
         gl.glClearColor(*scene.bg_color)
         gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
         gl.glEnable(gl.GL_MULTISAMPLE)
-        V, P = renderer._get_camera_matrices(scene)
-        cam_pos = scene.get_pose(scene.main_camera_node)[:3, 3]
         shadow_unit = 0 if self.shadows else None  # texture units: shadow maps, then material
         material_unit = len(self.sun_nodes) if self.shadows else 0
-        framed = set()
-        program = None
-        gl.glPolygonMode(gl.GL_FRONT_AND_BACK, gl.GL_FILL)
-        for node in nodes:
-            pose = scene.get_pose(node)
-            for primitive in node.mesh.primitives:
-                program = self._program(renderer, primitive, flags, ProgramFlags.USE_MATERIAL)
-                if program._program_id not in framed:
-                    framed.add(program._program_id)
-                    _set_uniform(program, "V", V)
-                    _set_uniform(program, "P", P)
-                    _set_uniform(program, "cam_pos", cam_pos)
-                    self._bind_lights(program, shadow_unit)
-                material = primitive.material
-                gl.glActiveTexture(gl.GL_TEXTURE0 + material_unit)
-                material.baseColorTexture._bind()
-                _set_uniform(program, "material.base_color_texture", material_unit)
-                _set_uniform(program, "material.base_color_factor", material.baseColorFactor)
-                _set_uniform(program, "material.roughness_factor", material.roughnessFactor)
-                self._opaque_state(cull=not material.doubleSided)
-                _set_uniform(program, "M", pose)
-                self._draw(primitive)
-        if program is not None:
-            program._unbind()
+
+        def material(program, node, primitive):
+            material = primitive.material
+            gl.glActiveTexture(gl.GL_TEXTURE0 + material_unit)
+            material.baseColorTexture._bind()
+            _set_uniform(program, "material.base_color_texture", material_unit)
+            _set_uniform(program, "material.base_color_factor", material.baseColorFactor)
+            _set_uniform(program, "material.roughness_factor", material.roughnessFactor)
+            self._opaque_state(cull=not material.doubleSided)
+
+        V, P = renderer._get_camera_matrices(scene)
+        self._pass(renderer, nodes, flags, ProgramFlags.USE_MATERIAL, V, P,
+                   lambda program: self._bind_lights(program, shadow_unit, light_matrices),
+                   material)
         width, height = renderer._main_fb_dims
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
         gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, renderer._main_fb)
@@ -556,10 +546,11 @@ class SceneRenderer:
         renderer = self._begin(flags)
         _begin_label_target(self.width, self.height, [gl.GL_COLOR_ATTACHMENT0])
         V, P = renderer._get_camera_matrices(self.scene)
-        self._depth_pass(renderer, renderer._sorted_mesh_nodes(self.scene), flags,
-                         pyrender.constants.ProgramFlags.USE_MATERIAL, V, P,
-                         lambda program, node: _set_uniform(program, "color",
-                                                            self.seg_colors[node] / 255.0))
+        self._opaque_state(cull=True)
+        self._pass(renderer, renderer._sorted_mesh_nodes(self.scene), flags,
+                   pyrender.constants.ProgramFlags.USE_MATERIAL, V, P,
+                   per_primitive=lambda program, node, primitive: _set_uniform(
+                       program, "color", self.seg_colors[node] / 255.0))
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
         gl.glReadBuffer(gl.GL_COLOR_ATTACHMENT0)
         data = gl.glReadPixels(0, 0, self.width, self.height, gl.GL_RGB, gl.GL_UNSIGNED_BYTE)
@@ -587,14 +578,14 @@ class SceneRenderer:
                             [gl.GL_COLOR_ATTACHMENT1, gl.GL_COLOR_ATTACHMENT2])
         V, P = renderer._get_camera_matrices(self.scene)
 
-        def box(program, node):
+        def box(program, node, primitive):
             low, scale = self.boxes[node]
             _set_uniform(program, "box_min", low)
             _set_uniform(program, "box_scale", scale)
 
-        self._depth_pass(renderer, renderer._sorted_mesh_nodes(self.scene),
-                         pyrender.RenderFlags.FLAT, pyrender.constants.ProgramFlags.NONE, V, P,
-                         box)
+        self._opaque_state(cull=True)
+        self._pass(renderer, renderer._sorted_mesh_nodes(self.scene), pyrender.RenderFlags.FLAT,
+                   pyrender.constants.ProgramFlags.NONE, V, P, per_primitive=box)
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
         return (_read_float_rgb(gl.GL_COLOR_ATTACHMENT1, self.width, self.height),
                 _read_float_rgb(gl.GL_COLOR_ATTACHMENT2, self.width, self.height))
