@@ -102,13 +102,14 @@ def run_subcommand(argv: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     verbose = "-v" in argv or "--verbose" in argv
-    prepare_openmp()  # before any subcommand imports torch
+    wait_policy = prepare_openmp()  # before any subcommand imports torch
     set_thread_override(None)
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose else "%(message)s",
         datefmt="%H:%M:%S",
     )
+    log.debug("OpenMP wait policy: %s", wait_policy)
     try:
         return run_subcommand(argv)
     except UserError as exc:

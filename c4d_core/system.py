@@ -7,6 +7,7 @@ import ctypes.util
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 from c4d_core.errors import UserError
@@ -41,14 +42,59 @@ _override: dict[str, int] = {}
 _USER_OMP = os.environ.get("OMP_NUM_THREADS")
 
 
-def prepare_openmp() -> None:
-    """Make idle OpenMP threads sleep instead of spinning (`OMP_WAIT_POLICY=PASSIVE`, unless set).
+# Below this many busy cores (of those this process may use) no other CPU-bound process runs
+# beside this one: one busy process keeps a core at 1.0.
+IDLE_BUSY_CPUS = 0.5
 
-    Must run before torch is imported (OpenMP reads it once). A spinning thread that waits for a
-    peer the OS has descheduled burns the core that peer needs: on a machine shared with other
-    CPU-bound processes that alone made training steps 4-6x slower (docs/perf/threads.md).
+
+def prepare_openmp(busy: float | None = None) -> str:
+    """Choose how idle OpenMP threads wait, unless the user set `OMP_WAIT_POLICY`; return the policy.
+
+    Must run before torch is imported (OpenMP reads it once). busy: cores kept busy by other
+    processes, summed over the cores this process may use (None: measured, `busy_cpus`). On an
+    idle machine (busy < IDLE_BUSY_CPUS) threads keep OpenMP's default of spinning briefly between
+    parallel regions ("default"): sleeping there made the demo's small training step 1.35-1.65x
+    slower. On a machine busy with other CPU-bound processes they sleep ("PASSIVE"): a spinning
+    thread that waits for a peer the OS has descheduled burns the core that peer needs, which made
+    training steps 4-10x slower (docs/perf/threads.md).
     """
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    if "OMP_WAIT_POLICY" in os.environ:
+        return os.environ["OMP_WAIT_POLICY"]
+    if busy is None:
+        busy = busy_cpus()
+    if busy is not None and busy < IDLE_BUSY_CPUS:
+        return "default"
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"  # busy, or unknown: the safe choice
+    return "PASSIVE"
+
+
+def busy_cpus(window_s: float = 0.1, stat: Path = Path("/proc/stat")) -> float | None:
+    """Cores busy while this process sleeps for window_s, summed over its affinity mask (0.0: all
+    idle, 1.0: one core's worth), from the kernel's per-core counters; None where unreadable.
+
+    A snapshot rather than the load average, which still counts a job that ended a minute ago."""
+    cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+
+    def counters() -> dict[int, tuple[int, int]]:  # core -> (all ticks, idle + iowait ticks)
+        out = {}
+        for line in stat.read_text().splitlines():
+            name, *fields = line.split()
+            if name.startswith("cpu") and name[3:].isdigit() and (cores is None or int(name[3:]) in cores):
+                ticks = [int(f) for f in fields[:8]]  # user nice system idle iowait irq softirq steal
+                out[int(name[3:])] = (sum(ticks), ticks[3] + ticks[4])
+        return out
+
+    try:
+        before = counters()
+        time.sleep(window_s)
+        after = counters()
+    except (OSError, ValueError, IndexError):
+        return None
+    busy = 0.0
+    for core, (total, idle) in after.items():
+        if core in before and total > before[core][0]:
+            busy += 1.0 - (idle - before[core][1]) / (total - before[core][0])
+    return busy if after else None
 
 
 def _cgroup_cpu_limit(root: Path = Path("/sys/fs/cgroup")) -> float | None:

@@ -1,6 +1,9 @@
 """CPU threads: the count every command sets from the usable cores and the workers it starts."""
 
 import os
+import subprocess
+import sys
+import time
 
 import cv2
 import pytest
@@ -83,3 +86,32 @@ def test_run_threads_is_the_config_key_and_set_before_the_networks_load(restore_
         run_subcommand(["run", str(tmp_path / "none.mp4"), "threads=3", "--out", str(out)])
     assert torch.get_num_threads() == 3 and cv2.getNumThreads() == 3
     assert not out.exists()
+
+
+def test_openmp_threads_spin_on_an_idle_machine_and_sleep_on_a_busy_one(monkeypatch):
+    """The wait policy follows the cores other processes keep busy at start-up; a user's
+    OMP_WAIT_POLICY always wins; an unknown load counts as busy."""
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    assert system.prepare_openmp(busy=0.1) == "default"
+    assert "OMP_WAIT_POLICY" not in os.environ
+    assert system.prepare_openmp(busy=1.0) == "PASSIVE"  # one CPU-bound process beside us
+    assert os.environ["OMP_WAIT_POLICY"] == "PASSIVE"
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    assert system.prepare_openmp(busy=9.0) == "ACTIVE"
+    monkeypatch.delenv("OMP_WAIT_POLICY")
+    monkeypatch.setattr(system, "busy_cpus", lambda: None)
+    assert system.prepare_openmp() == "PASSIVE"
+
+
+def test_busy_cpus_sees_a_real_cpu_bound_process(tmp_path):
+    """A spinning child process shows as about one busy core; an unreadable counter file as None."""
+    cores = len(os.sched_getaffinity(0))
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.5)
+        busy = system.busy_cpus(window_s=0.3)
+    finally:
+        hog.kill()
+        hog.wait()
+    assert 0.8 <= busy <= cores
+    assert system.busy_cpus(window_s=0.0, stat=tmp_path / "missing") is None
