@@ -90,8 +90,11 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
 def run_subcommand(argv: list[str]) -> int:
     """Parse `argv` and run its subcommand; exceptions propagate (for callers such as `c4d demo`).
 
-    Sets the process's CPU threads first (`c4d_core.system.configure_threads`); a command that starts
+    Chooses OpenMP's wait policy if torch has not loaded yet (`prepare_openmp`), then sets the
+    process's CPU threads (`c4d_core.system.configure_threads`); a command that starts
     worker processes sets them again, leaving a core to each worker."""
+    if "torch" not in sys.modules:  # OpenMP reads its wait policy once, when torch loads (parsing
+        log.debug("OpenMP wait policy: %s", prepare_openmp())  # imports the subcommand's module)
     args = parse_arguments(argv)
     if getattr(args, "threads", None) is not None:
         set_thread_override(args.threads)
@@ -102,14 +105,12 @@ def run_subcommand(argv: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     verbose = "-v" in argv or "--verbose" in argv
-    wait_policy = prepare_openmp()  # before any subcommand imports torch
     set_thread_override(None)
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose else "%(message)s",
         datefmt="%H:%M:%S",
     )
-    log.debug("OpenMP wait policy: %s", wait_policy)
     try:
         return run_subcommand(argv)
     except UserError as exc:

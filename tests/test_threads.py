@@ -115,3 +115,17 @@ def test_busy_cpus_sees_a_real_cpu_bound_process(tmp_path):
         hog.wait()
     assert 0.8 <= busy <= cores
     assert system.busy_cpus(window_s=0.0, stat=tmp_path / "missing") is None
+
+
+def test_the_wait_policy_is_chosen_before_torch_loads_and_only_then(tmp_path, monkeypatch):
+    """A fresh `c4d` process chooses it (and logs it) before the subcommand's module imports
+    torch; in a process where torch is loaded (`c4d demo`'s steps, these tests) the choice could
+    no longer take effect, so nothing is measured."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    done = subprocess.run([sys.executable, "-m", "c4d", "-v", "eval-recon", "--pred", str(tmp_path),
+                           "--gt", str(tmp_path)], capture_output=True, text=True, env=env)
+    assert done.returncode == 2 and "OpenMP wait policy: " in done.stderr
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    monkeypatch.setattr(system, "busy_cpus", lambda: pytest.fail("measured with torch loaded"))
+    with pytest.raises(UserError):
+        run_subcommand(["eval-recon", "--pred", str(tmp_path), "--gt", str(tmp_path)])
