@@ -15,7 +15,7 @@ import traceback
 
 from c4d import __version__
 from c4d_core.errors import UserError
-from c4d_core.system import configure_threads, prepare_openmp, set_thread_override
+from c4d_core.system import configure_threads, prepare_allocator, prepare_openmp, set_thread_override
 
 # name -> (module, one-line help), in the order of the data flow.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -90,11 +90,13 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
 def run_subcommand(argv: list[str]) -> int:
     """Parse `argv` and run its subcommand; exceptions propagate (for callers such as `c4d demo`).
 
-    Chooses OpenMP's wait policy if torch has not loaded yet (`prepare_openmp`), then sets the
-    process's CPU threads (`c4d_core.system.configure_threads`); a command that starts
-    worker processes sets them again, leaving a core to each worker."""
+    Chooses OpenMP's wait policy if torch has not loaded yet (`prepare_openmp`), keeps freed
+    memory for reuse (`prepare_allocator`), then sets the process's CPU threads
+    (`c4d_core.system.configure_threads`); a command that starts worker processes sets them
+    again, leaving a core to each worker."""
     if "torch" not in sys.modules:  # OpenMP reads its wait policy once, when torch loads (parsing
         log.debug("OpenMP wait policy: %s", prepare_openmp())  # imports the subcommand's module)
+    log.debug("malloc keeps freed memory: %s", prepare_allocator())
     args = parse_arguments(argv)
     if getattr(args, "threads", None) is not None:
         set_thread_override(args.threads)

@@ -129,3 +129,43 @@ def test_the_wait_policy_is_chosen_before_torch_loads_and_only_then(tmp_path, mo
     monkeypatch.setattr(system, "busy_cpus", lambda: pytest.fail("measured with torch loaded"))
     with pytest.raises(UserError):
         run_subcommand(["eval-recon", "--pred", str(tmp_path), "--gt", str(tmp_path)])
+
+
+_FAULTS_PER_STEP = """
+import resource, sys, torch
+from c4d_core.system import prepare_allocator
+print(prepare_allocator() if sys.argv[1] == "1" else "off")
+torch.manual_seed(0)
+torch.set_num_threads(2)
+net = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, padding=1), torch.nn.InstanceNorm2d(8), torch.nn.ReLU(),
+                          torch.nn.Conv2d(8, 8, 3, padding=1))
+x = torch.randn(16, 3, 64, 64)
+def step():
+    y = net(x)
+    (y[..., 1:] * y[..., :-1]).sum().backward()
+for _ in range(3):
+    step()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(10):
+    step()
+print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 10)
+"""
+
+
+def test_kept_memory_ends_the_page_faults_of_repeated_training_steps(tmp_path):
+    """A real process running small training steps: glibc's defaults hand the steps' memory back
+    to the kernel and fault it in again (thousands of faults per step); `prepare_allocator` keeps
+    it; a user's own malloc setting is left alone."""
+    script = tmp_path / "faults.py"
+    script.write_text(_FAULTS_PER_STEP)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "LD_PRELOAD"}
+
+    def run(mode, **extra):
+        out = subprocess.run([sys.executable, str(script), mode], env={**env, **extra}, check=True,
+                             capture_output=True, text=True).stdout.split()
+        return out[0], float(out[1])
+
+    (off, default), (on, kept) = run("0"), run("1")
+    assert (off, on) == ("off", "True")
+    assert default > 1000 and kept * 10 < default, (default, kept)
+    assert run("1", MALLOC_TOP_PAD_="0")[0] == "False"
