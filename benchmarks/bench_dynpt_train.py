@@ -5,6 +5,7 @@ Usage:
         [--loader-config PRESET --loader-set KEY=VALUE ...] [--clips 120] [--repeats 3]
         [--models tiny,cnn-only,full] [--clip T,H,W,N] [--batch B] [--iters I] [--set KEY=VALUE ...]
         [--before DIR] [--cotracker-step SCRIPT --cotracker-model online --cotracker-window S]
+        [--device cuda [--bf16]]
 
 - Data: clips/s of the training pipeline (read, decode, clip choice, augmentation, track
   sampling, batching through a DataLoader) with each of `--workers` worker counts and with none
@@ -19,14 +20,19 @@ Usage:
   it (forward, loss, backward, gradient clipping, AdamW, OneCycle), after one warm-up step, and
   the peak resident memory, of each model in `--models` on one seeded batch (`clip_inputs`:
   `--batch` clips of `--clip T,H,W,N`), each in a fresh process per repeat, the systems
-  interleaved; medians over `--repeats`, ratios to the last system. `--set` overrides every
+  interleaved; medians over `--repeats`, ratios to the last system. `--device cuda` runs the
+  steps on the GPU instead: the times are then wall seconds per step between CUDA synchronisations
+  and the memory is the peak GPU memory allocated by tensors (`--bf16`: forward and loss under
+  bfloat16 autocast, as `train.bf16` trains; CoTracker3's script takes the same flags and wraps its
+  forward as Lightning's bf16 precision does). `--set` overrides every
   model's config (`--iters` is `model.train_iters`). `--before DIR` times each model again with
   the `dynpt` package in DIR (`git archive COMMIT dynpt | tar -x -C DIR`): the code before a
   change, in the same run. `--cotracker-step SCRIPT` times CoTracker3's own train step on the
   same batch (saved as .npz) with a script kept outside this repository, which holds none of
   CoTracker3's code: it is run as `SCRIPT --inputs NPZ --model online|offline --window S --iters I
-  --steps K` and prints one JSON line with step_cpu_s, step_s, peak_rss_gib and base_rss_gib
-  (after its imports); docs/PERFORMANCE.md says what it computes. Models: `tiny` (`tiny-cpu`),
+  --steps K [--device cuda] [--bf16]` and prints one JSON line with step_cpu_s, step_s,
+  peak_rss_gib, base_rss_gib (after its imports) and peak_gpu_gib (None on the CPU);
+  docs/PERFORMANCE.md says what it computes. Models: `tiny` (`tiny-cpu`),
   `tiny-2x` (`tiny-cpu-2x`: the clip at twice its height and width), `cnn-only`
   (`paper-gpu-cnn-only`), `full` (`paper-gpu`, frozen ViT-L with random weights: no DUSt3R file
   is needed to time it) and the fine-tuning recipes `ft-mobility`, `ft-mobility-fusion`,
@@ -149,29 +155,35 @@ def _peak_rss_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # Linux: KiB
 
 
-def step_times(model: str, steps: int, inputs: str, overrides: list[str]) -> dict:
-    """CPU and wall seconds per optimiser step and peak RSS (a fresh process by `main`) on the
-    batch saved at `inputs`, as `Trainer.train_step` does it: forward, loss, backward, gradient
-    clipping, AdamW and OneCycle steps."""
+def step_times(model: str, steps: int, inputs: str, overrides: list[str], device: str = "cpu",
+               bf16: bool = False) -> dict:
+    """CPU and wall seconds per optimiser step, peak RSS and (on a GPU) peak GPU memory of a fresh
+    process (by `main`) on the batch saved at `inputs`, as `Trainer.train_step` does it: forward
+    and loss (under bfloat16 autocast with `bf16` on a GPU), backward, gradient clipping, AdamW
+    and OneCycle steps. On a GPU each step is timed between CUDA synchronisations."""
+    from dynpt.device import peak_memory, reset_peak_memory, training_autocast_dtype
     from dynpt.losses import LossWeights, dynpt_loss
     from dynpt.model import build_model
     from dynpt.train import param_groups
 
     base_rss = _peak_rss_gib()  # after the imports
+    dev = torch.device(device)
+    amp_dtype = training_autocast_dtype(dev.type, bf16, dev.type == "cuda" and torch.cuda.is_bf16_supported())
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     preset, preset_overrides, size_factor = MODELS[model]
     cfg = load_config("dynpt", preset, overrides=[*preset_overrides, *overrides])
     with np.load(inputs) as data:
-        batch = {k: torch.from_numpy(data[k]) for k in data.files}
+        batch = {k: torch.from_numpy(data[k]).to(dev) for k in data.files}
     video = batch["video"].permute(0, 1, 4, 2, 3).float()  # (B,T,3,H,W)
     if size_factor != 1:  # the model tracks the clip at this multiple of its size
         B, T = video.shape[:2]
         video = torch.nn.functional.interpolate(video.flatten(0, 1), scale_factor=size_factor,
                                                 mode="bilinear").unflatten(0, (B, T))
-    queries = batch["queries"] * torch.tensor([1.0, size_factor, size_factor])
+    queries = batch["queries"] * torch.tensor([1.0, size_factor, size_factor], device=dev)
     target = {"tracks": batch["tracks"] * size_factor, "visible": batch["visible"],
               "moving": batch["moving"]}
     torch.manual_seed(0)
-    net = build_model(cfg.model).train()
+    net = build_model(cfg.model).to(dev).train()
     tc = cfg.train
     groups = param_groups(net, tc.lr, tc.lr_scale)  # train.lr_scale's groups
     opt = torch.optim.AdamW(groups, lr=tc.lr, weight_decay=tc.weight_decay, eps=tc.adam_eps)
@@ -179,14 +191,18 @@ def step_times(model: str, steps: int, inputs: str, overrides: list[str]) -> dic
                                                 total_steps=steps + 101, cycle_momentum=False)
     weights = LossWeights.from_config(cfg.loss)
     times, cpu = [], []
-    for _ in range(steps + 1):  # the first step warms up allocators
+    reset_peak_memory(dev)
+    for _ in range(steps + 1):  # the first step warms up allocators (and chooses kernels)
+        sync()
         start, cpu_start = time.perf_counter(), time.process_time()
-        loss, _ = dynpt_loss(net(video, queries), target, weights)
+        with torch.autocast(dev.type, amp_dtype or torch.bfloat16, enabled=amp_dtype is not None):
+            loss, _ = dynpt_loss(net(video, queries), target, weights)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), tc.grad_clip)
         opt.step()
         sched.step()
         opt.zero_grad(set_to_none=True)
+        sync()
         times.append(time.perf_counter() - start)
         cpu.append(time.process_time() - cpu_start)
     B, T, _, H, W = video.shape
@@ -194,37 +210,46 @@ def step_times(model: str, steps: int, inputs: str, overrides: list[str]) -> dic
             "trainable_params": sum(p.numel() for p in net.parameters() if p.requires_grad),
             "step_s": statistics.median(times[1:]), "all_step_s": times[1:],
             "step_cpu_s": statistics.median(cpu[1:]), "all_step_cpu_s": cpu[1:],
-            "peak_rss_gib": _peak_rss_gib(), "base_rss_gib": base_rss}
+            "peak_rss_gib": _peak_rss_gib(), "base_rss_gib": base_rss,
+            "peak_gpu_gib": None if peak_memory(dev) is None else peak_memory(dev) / 2**30}
 
 
 def compare_steps(systems: list[str], args) -> None:
     """Each system's train step in a fresh process per repeat, the systems interleaved (a, b, a,
-    b, ...); per system the median over repeats of each process's median CPU seconds, its peak
-    RSS (median), and the ratios to the last system (`--cotracker-step` when given)."""
+    b, ...); per system the median over repeats of each process's median CPU seconds (on a GPU:
+    wall seconds), its peak RSS (on a GPU: peak GPU memory; medians), and the ratios to the last
+    system (`--cotracker-step` when given)."""
     B, (T, H, W, N) = args.batch, (int(v) for v in args.clip.split(","))
     inputs = Path(tempfile.mkdtemp(prefix="bench-dynpt-step-")) / "batch.npz"
     np.savez(inputs, **clip_inputs(B, T, H, W, N))
     runs: dict[str, list[dict]] = {name: [] for name in systems}
+    device = ["--device", args.device] + ["--bf16"] * args.bf16
     for repeat in range(args.repeats):
         for name in systems:
             if name == "cotracker3":
                 cmd = [sys.executable, args.cotracker_step, "--inputs", str(inputs), "--model",
                        args.cotracker_model, "--window", str(args.cotracker_window), "--iters",
-                       str(args.iters), "--steps", str(args.steps)]
+                       str(args.iters), "--steps", str(args.steps), *device]
             else:
                 cmd = [sys.executable, __file__, "--only-steps", name.split("@")[0], "--steps", str(args.steps),
                        "--inputs", str(inputs), *[f"--set={o}" for o in args.set],
-                       *([f"--set=model.train_iters={args.iters}"] if args.iters else [])]
+                       *([f"--set=model.train_iters={args.iters}"] if args.iters else []), *device]
             env = dict(os.environ)
             if name.endswith("@before"):  # the same model from the code in --before
                 env["PYTHONPATH"] = os.pathsep.join([args.before, env.get("PYTHONPATH", "")])
-            out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+            out = subprocess.run(cmd, capture_output=True, text=True, env=env)
+            if out.returncode:
+                sys.exit(f"{name} failed (exit {out.returncode}):\n{out.stderr[-3000:]}")
             r = json.loads(out.stdout.strip().splitlines()[-1])
             runs[name].append(r)
             print(f"repeat {repeat} {name:>10} (B={r['B']} T={r['T']} {r['HxW']} N={r['N']}, "
                   f"{r['trainable_params'] / 1e6:.2f}M trainable): CPU {r['step_cpu_s']:.2f} s/step "
                   f"(wall {r['step_s']:.2f} s), peak RSS {r['peak_rss_gib']:.2f} GiB "
-                  f"(after imports {r['base_rss_gib']:.2f})", flush=True)
+                  f"(after imports {r['base_rss_gib']:.2f})"
+                  + (f", peak GPU {r['peak_gpu_gib']:.2f} GiB" if r.get("peak_gpu_gib") else ""), flush=True)
+    if args.device != "cpu":
+        _gpu_table(runs, args)
+        return
     med = {name: {key: statistics.median(r[key] for r in rs)
                   for key in ("step_cpu_s", "step_s", "peak_rss_gib", "base_rss_gib")}
            for name, rs in runs.items()}
@@ -236,6 +261,20 @@ def compare_steps(systems: list[str], args) -> None:
         print(f"| {name} | {m['step_cpu_s']:.2f} | {m['peak_rss_gib']:.2f} | {above:.2f} | "
               f"{m['step_cpu_s'] / med[ref]['step_cpu_s']:.2f} | "
               f"{m['peak_rss_gib'] / med[ref]['peak_rss_gib']:.2f} | {above / ref_above:.2f} |")
+
+
+def _gpu_table(runs: dict[str, list[dict]], args) -> None:
+    """The GPU comparison: wall s/step and peak GPU memory, medians over repeats, ratios to the
+    last system."""
+    med = {name: {key: statistics.median(r[key] for r in rs) for key in ("step_s", "peak_gpu_gib")}
+           for name, rs in runs.items()}
+    ref = list(runs)[-1]
+    precision = "bf16 autocast" if args.bf16 else "fp32"
+    print(f"\n| system ({args.device}, {precision}) | s/step (median of {args.repeats}) | peak GPU GiB "
+          f"| time / {ref} | memory / {ref} |\n|---|---:|---:|---:|---:|")
+    for name, m in med.items():
+        print(f"| {name} | {m['step_s']:.3f} | {m['peak_gpu_gib']:.2f} | "
+              f"{m['step_s'] / med[ref]['step_s']:.2f} | {m['peak_gpu_gib'] / med[ref]['peak_gpu_gib']:.2f} |")
 
 
 def main() -> None:
@@ -268,11 +307,14 @@ def main() -> None:
                         "with it, interleaved")
     parser.add_argument("--cotracker-model", default="online", choices=("online", "offline"))
     parser.add_argument("--cotracker-window", type=int, default=16)
+    parser.add_argument("--device", default="cpu", help="where the train steps run: cpu or cuda")
+    parser.add_argument("--bf16", action="store_true", help="on a GPU: bfloat16 autocast (train.bf16)")
     parser.add_argument("--only-steps", help=argparse.SUPPRESS)  # child process mode
     parser.add_argument("--inputs", help=argparse.SUPPRESS)  # child process mode: the batch
     args = parser.parse_args()
     if args.only_steps:
-        print(json.dumps(step_times(args.only_steps, args.steps, args.inputs, args.set)))
+        print(json.dumps(step_times(args.only_steps, args.steps, args.inputs, args.set, args.device,
+                                    args.bf16)))
         return
 
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average "

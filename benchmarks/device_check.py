@@ -2,6 +2,7 @@
 
     python benchmarks/device_check.py [--out DIR] [--train-seconds 300] [--budget-s 480]  # CUDA
     python benchmarks/device_check.py --cpu                               # tiny sizes, ~1 minute
+    python benchmarks/device_check.py --skip dust3r,c4d                   # leave sections out
 
 Sections, each through the project's own builders (configs, `dynpt.train.Trainer`,
 `c4d_pipeline` DUSt3R network and pointmap source, `c4d_pipeline.optimize.optimise`):
@@ -43,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository r
 
 ROWS: list[tuple[str, str, str, str]] = []  # (check, setting, result, peak memory)
 STEP_CLIPS_PER_S: dict[str, float] = {}  # section 2's training speed per precision, for section 5
+SECTIONS = ("shards", "speed", "dust3r", "c4d", "loader", "run")  # --skip keys, in the run's order
 BUDGET_MARGIN = 15.0  # seconds of the budget kept free (the run's start and checkpoint, rounding)
 
 
@@ -65,7 +67,7 @@ class Sizes:
     def __init__(self, cpu: bool, train_seconds: float | None):
         self.cpu = cpu
         self.scenes = (2, 1) if cpu else (48, 8)  # train, val
-        self.resolution, self.frames = (64, 8) if cpu else (128, 24)
+        self.resolution, self.frames = (64, 8) if cpu else (256, 24)
         self.workers = 1 if cpu else (os.cpu_count() or 1)  # datagen processes
         tiny = ["data.crop_size=[32,32]", "data.num_frames=6", "data.num_tracks=12"]
         self.speed_preset = "tiny-cpu" if cpu else "paper-gpu-cnn-only"
@@ -164,7 +166,8 @@ def _sync(device) -> None:
 
 def loader_speed(train_dir: Path, sizes: Sizes) -> None:
     """clips/s of `dynpt.data`'s loader (batch 1, as section 2) per worker count; the last row:
-    the fewest workers that keep up with the bf16 step, or the count extrapolated from the
+    the fewest worker processes that keep up with the bf16 step (at least one: with none, each
+    clip is loaded between two steps instead of beside them), or the count extrapolated from the
     fastest per-worker rate when none of those measured does."""
     import math
 
@@ -191,8 +194,8 @@ def loader_speed(train_dir: Path, sizes: Sizes) -> None:
         versus = f", {rates[workers] / step:.1f}x the bf16 step's {step:.2f} clips/s" if step else ""
         row("DynPT loader", f"{setting}, {workers} workers", f"{rates[workers]:.1f} clips/s{versus}")
     if step:
-        enough = [w for w, rate in rates.items() if rate >= step]
-        per_worker = max(rate / max(w, 1) for w, rate in rates.items())
+        enough = [w for w, rate in rates.items() if w > 0 and rate >= step]
+        per_worker = max(rate / w for w, rate in rates.items() if w > 0)
         need = min(enough) if enough else math.ceil(step / per_worker)
         how = "measured" if enough else f"extrapolated from {per_worker:.1f} clips/s per worker"
         row("DynPT loader workers per GPU", f"to feed {step:.2f} clips/s (bf16 step)", f"{need} ({how})")
@@ -287,10 +290,11 @@ def dust3r_forward(out: Path, sizes: Sizes) -> None:
             seconds = (time.perf_counter() - start) / len(edges)
             chosen = batch or source._auto_batch(h, w)
             dtype = str(source.amp_dtype).replace("torch.", "") if source.amp_dtype else "fp32"
-            how = "" if batch else (" (automatic: from free memory)" if source.device.type == "cuda"
-                                    else " (automatic)")
-            row("DUSt3R pair forward", f"{name} ({path.name}, official layout), {w}x{h}, batch {chosen}"
-                f"{how}, {dtype}", f"{seconds * 1e3:.0f} ms/pair", gib(peak_memory(source.device)))
+            how = "" if batch else (f" (automatic: {chosen} from free memory, all {len(edges)} pairs "
+                                    "at once)" if source.device.type == "cuda" else " (automatic)")
+            row("DUSt3R pair forward", f"{name} ({path.name}, official layout), {w}x{h}, batch "
+                f"{min(chosen, len(edges))}{how}, {dtype}", f"{seconds * 1e3:.0f} ms/pair",
+                gib(peak_memory(source.device)))
 
 
 # --- 4. C4D stage 1 -----------------------------------------------------------------------------
@@ -375,7 +379,13 @@ def main(argv: list[str] | None = None) -> int:
                         "less if the budget has less left")
     parser.add_argument("--budget-s", type=float, default=480.0,
                         help="seconds the whole check may take [480]; over it, the exit status is 1")
+    parser.add_argument("--skip", type=lambda text: [k for k in text.split(",") if k], default=[],
+                        metavar="KEYS", help=f"sections left out, comma-separated: {','.join(SECTIONS)} "
+                        "(the DynPT sections need the shards)")
     args = parser.parse_args(argv)
+    unknown = sorted(set(args.skip) - set(SECTIONS))
+    if unknown:
+        parser.error(f"--skip {','.join(unknown)}: no such section; choose from {','.join(SECTIONS)}")
     if args.budget_s <= 0:
         parser.error(f"--budget-s must be positive, got {args.budget_s:g}")
     if args.cpu:
@@ -396,6 +406,8 @@ def main(argv: list[str] | None = None) -> int:
                     ("C4D stage 1 (GA+CMA+CTS)", lambda: c4d_stage1(sizes)),
                     ("DynPT loader", lambda: loader_speed(shards[0], sizes)),
                     ("DynPT training run", lambda: training_run(*shards, out, sizes, deadline))]
+        sections = [(name, section) for key, (name, section) in zip(SECTIONS, sections)
+                    if key not in args.skip]
         seconds = []
         for name, section in sections:
             section_start = time.perf_counter()

@@ -34,3 +34,23 @@ def test_device_check_on_the_cpu(tmp_path):
     before, after = (float(x) for x in next(r for r in rows if r[0] == "DynPT AJ (val)")[2].split("->"))
     assert 0 <= before <= 100 and 0 <= after <= 100
     assert "--cpu" in lines[start - 2] and "0 section(s) failed" in lines[start - 2]
+
+
+def _device_check(*args, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "device_check.py"), *args,
+                           "--out", str(tmp_path)], env=env, cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_skip_leaves_sections_out(tmp_path):
+    proc = _device_check("--cpu", "--skip", "shards,speed,c4d,loader,run", tmp_path=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    checks = [line.split("|")[1].strip() for line in proc.stdout.splitlines() if line.startswith("| ")][1:]
+    assert checks == ["DUSt3R pair forward"] * 2 + ["total"], checks
+
+
+def test_skip_of_an_unknown_section_is_one_line(tmp_path):
+    proc = _device_check("--skip", "dust3r,gpu", tmp_path=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "--skip gpu: no such section; choose from shards,speed,dust3r,c4d,loader,run" in proc.stderr
