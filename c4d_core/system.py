@@ -32,6 +32,34 @@ def require_egl() -> None:
         )
     if ctypes.util.find_library("EGL") is None:
         raise UserError(f"libEGL was not found, so nothing can be rendered: {EGL_HELP}")
+    problem = pyopengl_problem(sys.version_info[:2], _installed_version("PyOpenGL"))
+    if problem:
+        raise UserError(problem)
+
+
+def _installed_version(distribution: str) -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version(distribution)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def pyopengl_problem(python: tuple[int, int], version: str | None) -> str | None:
+    """Why PyOpenGL `version` cannot render on Python `python` (major, minor), or None.
+
+    PyOpenGL before 3.1.7 (pyrender pins 3.1.0) fails at the first GL call on Python 3.12 and
+    newer ("No array-type handler for type _ctypes.type"); pyrender runs with 3.1.7 and later.
+    """
+    if version is None or python < (3, 12):
+        return None
+    release = tuple(int(part) for part in version.split(".")[:3] if part.isdigit())
+    if release >= (3, 1, 7):
+        return None
+    return (f"PyOpenGL {version} cannot render on Python {python[0]}.{python[1]} (it fails at the first "
+            "GL call); install 3.1.7 or later: `pip install 'PyOpenGL>=3.1.7'` (pip warns that "
+            "pyrender pins 3.1.0; pyrender works with the newer one)")
 
 
 # --- memory allocator ----------------------------------------------------------------------------

@@ -182,6 +182,23 @@ def test_missing_egl_is_a_user_error(tmp_path, monkeypatch, capsys):
     assert "PYOPENGL_PLATFORM" in capsys.readouterr().err
 
 
+def test_pyopengl_too_old_for_the_python_is_a_user_error(tmp_path, monkeypatch, capsys):
+    from c4d_core import system
+
+    assert system.pyopengl_problem((3, 11), "3.1.0") is None
+    assert system.pyopengl_problem((3, 12), "3.1.9") is None
+    assert system.pyopengl_problem((3, 13), "3.1.10") is None
+    assert system.pyopengl_problem((3, 12), None) is None
+    assert "PyOpenGL>=3.1.7" in system.pyopengl_problem((3, 12), "3.1.0")
+    # the command: one line naming the fix, exit 2, before anything is written
+    real = system.pyopengl_problem  # this Python and PyOpenGL as if 3.12 with pyrender's pin
+    monkeypatch.setattr(system, "pyopengl_problem", lambda python, version: real((3, 12), "3.1.0"))
+    assert main(datagen_args(tmp_path)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "PyOpenGL 3.1.0 cannot render on Python 3.12" in err[0], err
+    assert shard_files(tmp_path) == []
+
+
 def test_resolution_forms():
     assert parse_resolution("256") == [256, 256]
     assert parse_resolution("384x512") == [384, 512]
