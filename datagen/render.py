@@ -1,7 +1,8 @@
 """Rendering with pyrender on EGL (Mesa's software renderer works): RGB, z-depth, segmentation,
 surface normals and object coordinates.
 
-- RGB: lit by a shadow-casting sun, a fill light and ambient light, 4x multisampled, with
+- RGB: lit by a shadow-casting sun, a fill light and ambient light, 4x multisampled, back faces
+  culled as in the label pass (so it shows the surfaces the labels describe), with
   datagen's own lit-pass shaders (datagen/shaders/: textured Lambert + Blinn-Phong, 4-tap shadow
   filter), several times cheaper than pyrender's PBR shader on a software renderer.
 - Labels: z-depth and instance segmentation with pyrender's segmentation shaders, drawn into a
@@ -247,7 +248,7 @@ def _textured_primitive(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
         source=image, source_channels="RGB",
         sampler=pyrender.Sampler(wrapS=pyrender.GLTF.REPEAT, wrapT=pyrender.GLTF.REPEAT))
     material = pyrender.MetallicRoughnessMaterial(
-        baseColorTexture=texture, metallicFactor=0.0, roughnessFactor=roughness, doubleSided=True)
+        baseColorTexture=texture, metallicFactor=0.0, roughnessFactor=roughness)
     return pyrender.Primitive(positions=vertices.astype(np.float32),
                               normals=normals.astype(np.float32),
                               texcoord_0=uv.astype(np.float32), indices=faces.astype(np.int32),
@@ -423,20 +424,18 @@ class SceneRenderer:
                                    ctypes.c_void_p(0), instances)
         primitive._unbind()
 
-    def _opaque_state(self, cull: bool) -> None:
-        """pyrender's state for an opaque primitive, filled, back faces culled unless
-        double-sided, but blending off: pyrender's replace-blending (ONE, ZERO) writes the same
-        bits, and costs llvmpipe a read of every covered sample (~4 ms of a 256x256 lit frame)."""
+    def _opaque_state(self) -> None:
+        """Every pass's state: filled triangles, back faces culled (every pass draws the same
+        triangles, so the lit image shows the surfaces the labels describe), blending off
+        (pyrender's replace-blending, ONE/ZERO, writes the same bits and costs llvmpipe a read
+        of every covered sample)."""
         from OpenGL import GL as gl
 
         gl.glDisable(gl.GL_BLEND)
         gl.glPolygonMode(gl.GL_FRONT_AND_BACK, gl.GL_FILL)
         gl.glDisable(gl.GL_PROGRAM_POINT_SIZE)
-        if cull:
-            gl.glEnable(gl.GL_CULL_FACE)
-            gl.glCullFace(gl.GL_BACK)
-        else:
-            gl.glDisable(gl.GL_CULL_FACE)
+        gl.glEnable(gl.GL_CULL_FACE)
+        gl.glCullFace(gl.GL_BACK)
 
     def _pass(self, renderer, nodes, flags: int, program_flags: int, V, P, per_program=None,
               per_primitive=None) -> None:
@@ -503,7 +502,7 @@ class SceneRenderer:
             for node in self.sun_nodes:
                 renderer._configure_shadow_mapping_viewport(node.light, flags)
                 V, P = renderer._get_light_cam_matrices(scene, node, flags)
-                self._opaque_state(cull=True)
+                self._opaque_state()
                 self._pass(renderer, nodes, flags, ProgramFlags.NONE, V, P)
                 light_matrices.append(P.dot(V))
         renderer._configure_forward_pass_viewport(flags)
@@ -520,8 +519,8 @@ class SceneRenderer:
             _set_uniform(program, "material.base_color_texture", material_unit)
             _set_uniform(program, "material.base_color_factor", material.baseColorFactor)
             _set_uniform(program, "material.roughness_factor", material.roughnessFactor)
-            self._opaque_state(cull=not material.doubleSided)
 
+        self._opaque_state()
         V, P = renderer._get_camera_matrices(scene)
         self._pass(renderer, nodes, flags, ProgramFlags.USE_MATERIAL, V, P,
                    lambda program: self._bind_lights(program, shadow_unit, light_matrices),
@@ -546,7 +545,7 @@ class SceneRenderer:
         renderer = self._begin(flags)
         _begin_label_target(self.width, self.height, [gl.GL_COLOR_ATTACHMENT0])
         V, P = renderer._get_camera_matrices(self.scene)
-        self._opaque_state(cull=True)
+        self._opaque_state()
         self._pass(renderer, renderer._sorted_mesh_nodes(self.scene), flags,
                    pyrender.constants.ProgramFlags.USE_MATERIAL, V, P,
                    per_primitive=lambda program, node, primitive: _set_uniform(
@@ -583,7 +582,7 @@ class SceneRenderer:
             _set_uniform(program, "box_min", low)
             _set_uniform(program, "box_scale", scale)
 
-        self._opaque_state(cull=True)
+        self._opaque_state()
         self._pass(renderer, renderer._sorted_mesh_nodes(self.scene), pyrender.RenderFlags.FLAT,
                    pyrender.constants.ProgramFlags.NONE, V, P, per_primitive=box)
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
