@@ -209,6 +209,39 @@ def _begin_label_target(width: int, height: int, attachments: list[int]) -> None
     gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
 
 
+# Sun i's shadow depth of the backdrop alone, drawn once per scene (the backdrop and the sun never
+# move): {"texture": GL id, "size": texels, "owner": the token of the SceneRenderer that drew it}.
+_BACKDROP_DEPTH: dict[int, dict] = {}
+
+
+def _backdrop_depth(index: int, size: int) -> dict:
+    """The process's texture for sun `index`'s backdrop depth, (size, size), made in the shadow
+    maps' own format (pyrender's unsized GL_DEPTH_COMPONENT), so one copies into the other."""
+    from OpenGL import GL as gl
+
+    cached = _BACKDROP_DEPTH.get(index)
+    if cached is None or cached["size"] != size:
+        if cached is not None:
+            gl.glDeleteTextures(1, [cached["texture"]])
+        texture = int(gl.glGenTextures(1))
+        gl.glBindTexture(gl.GL_TEXTURE_2D, texture)
+        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_DEPTH_COMPONENT, size, size, 0,
+                        gl.GL_DEPTH_COMPONENT, gl.GL_FLOAT, None)
+        # One level without mipmaps: complete (so copyable) only with a non-mipmap filter.
+        gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MIN_FILTER, gl.GL_NEAREST)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
+        cached = _BACKDROP_DEPTH[index] = {"texture": texture, "size": size, "owner": None}
+    return cached
+
+
+def _copy_depth(source: int, target: int, size: int) -> None:
+    """Copy a (size, size) depth texture into another of the same format (GL texture ids)."""
+    from OpenGL import GL as gl
+
+    gl.glCopyImageSubData(source, gl.GL_TEXTURE_2D, 0, 0, 0, 0, target, gl.GL_TEXTURE_2D, 0, 0, 0, 0,
+                          size, size, 1)
+
+
 def linear_depth(window_depth: np.ndarray, znear: float, zfar: float) -> np.ndarray:
     """z-depth (H,W) float32 from OpenGL window depths in [0,1] (1: nothing drawn -> 0), by
     pyrender's formula and float32 operations."""
@@ -342,7 +375,7 @@ class SceneRenderer:
         else:
             floor_image = dome_image = assets.background(description.background_id)
             equirect = True
-        backdrop = self.scene.add(backdrop_mesh(
+        self.backdrop = backdrop = self.scene.add(backdrop_mesh(
             float(cfg.backdrop.dome_radius), float(cfg.backdrop.floor_tile), floor_image,
             dome_image, equirect))
         # pyrender casts shadows from every directional light when asked to, so only the sun is
@@ -363,6 +396,7 @@ class SceneRenderer:
         self.light_counts = (len(self.sun_nodes), len(self.point_nodes))
         self._programs: dict = {}  # (primitive, flags, program flags) -> pyrender program
         self._uploaded: set[int] = set()  # render flags whose meshes and textures are uploaded
+        self._token = object()  # marks the backdrop depths this renderer drew (_BACKDROP_DEPTH)
         for node in self.sun_nodes:  # pyrender puts the shadow camera at centroid - direction * scale
             pose = self.scene.get_pose(node)
             eye = self.scene.centroid + pose[:3, 2] * self.scene.scale
@@ -486,6 +520,31 @@ class SceneRenderer:
             _set_uniform(program, name + "color", node.light.color)
             _set_uniform(program, name + "intensity", node.light.intensity)
 
+    def _shadow_map(self, renderer, nodes, index: int, flags: int) -> np.ndarray:
+        """Draw sun `index`'s shadow map; returns its shadow clip from world matrix (4,4).
+
+        A depth map holds each texel's nearest depth whatever the drawing order, so the
+        backdrop's depth (it never moves, nor does the sun) is drawn once per scene, kept, and
+        copied into the map before the objects are drawn: the same bits as drawing everything,
+        without rasterising the floor over the whole map at every frame.
+        """
+        node = self.sun_nodes[index]
+        shadow = node.light.shadow_texture
+        renderer._configure_shadow_mapping_viewport(node.light, flags)  # bound and cleared
+        V, P = renderer._get_light_cam_matrices(self.scene, node, flags)
+        self._opaque_state()
+        program_flags = _pyrender().constants.ProgramFlags.NONE
+        backdrop = _backdrop_depth(index, shadow.width)
+        if backdrop["owner"] is self._token:
+            _copy_depth(backdrop["texture"], shadow._texid, shadow.width)
+        else:
+            self._pass(renderer, [self.backdrop], flags, program_flags, V, P)
+            _copy_depth(shadow._texid, backdrop["texture"], shadow.width)
+            backdrop["owner"] = self._token
+        self._pass(renderer, [n for n in nodes if n is not self.backdrop], flags, program_flags,
+                   V, P)
+        return P.dot(V)
+
     def render_rgb(self, object_to_world: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
         """uint8 (H,W,3) lit image. object_to_world (K,4,4), cam_to_world (4,4) OpenCV."""
         from OpenGL import GL as gl
@@ -499,12 +558,8 @@ class SceneRenderer:
         nodes = renderer._sorted_mesh_nodes(scene)
         light_matrices = []
         if self.shadows:  # shadow maps: depth from each sun's orthographic camera
-            for node in self.sun_nodes:
-                renderer._configure_shadow_mapping_viewport(node.light, flags)
-                V, P = renderer._get_light_cam_matrices(scene, node, flags)
-                self._opaque_state()
-                self._pass(renderer, nodes, flags, ProgramFlags.NONE, V, P)
-                light_matrices.append(P.dot(V))
+            for index in range(len(self.sun_nodes)):
+                light_matrices.append(self._shadow_map(renderer, nodes, index, flags))
         renderer._configure_forward_pass_viewport(flags)
         gl.glClearColor(*scene.bg_color)
         gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
