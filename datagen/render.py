@@ -414,9 +414,17 @@ class SceneRenderer:
                                 for k, node in enumerate(self.object_nodes, start=1)})
 
     def _set_poses(self, object_to_world: np.ndarray, cam_to_world: np.ndarray) -> None:
+        """Pose the objects (K,4,4) and the camera (4,4, OpenCV) for one render, and keep every
+        mesh node's world pose (pyrender's get_pose walks the scene graph on each call) and
+        pyrender's draw order (`_sorted_mesh_nodes`: the opaque meshes from the farthest to the
+        nearest, node origin to camera; the same set order and the same keys, so the same order)."""
         for node, pose in zip(self.object_nodes, object_to_world):
             self.scene.set_pose(node, pose)
         self.scene.set_pose(self.camera_node, cam_to_world @ OPENCV_TO_OPENGL)
+        self.world = {node: self.scene.get_pose(node) for node in self.scene.mesh_nodes}
+        camera = self.scene.get_pose(self.camera_node)[:3, 3]
+        self.draw_order = sorted(
+            self.world, key=lambda node: -np.linalg.norm(self.world[node][:3, 3] - camera))
 
     # The three passes draw pyrender's uploaded meshes with pyrender's programs, framebuffers
     # and shadow maps, in pyrender's draw order and GL state, but set each pass's per-frame
@@ -479,7 +487,7 @@ class SceneRenderer:
         framed = set()
         program = None
         for node in nodes:
-            pose = self.scene.get_pose(node)
+            pose = self.world[node]
             for primitive in node.mesh.primitives:
                 program = self._program(renderer, primitive, flags, program_flags)
                 if program._program_id not in framed:
@@ -555,7 +563,7 @@ class SceneRenderer:
         flags = RenderFlags.OFFSCREEN | (RenderFlags.SHADOWS_DIRECTIONAL if self.shadows else 0)
         renderer = self._begin(flags)
         scene = self.scene
-        nodes = renderer._sorted_mesh_nodes(scene)
+        nodes = self.draw_order
         light_matrices = []
         if self.shadows:  # shadow maps: depth from each sun's orthographic camera
             for index in range(len(self.sun_nodes)):
@@ -601,7 +609,7 @@ class SceneRenderer:
         _begin_label_target(self.width, self.height, [gl.GL_COLOR_ATTACHMENT0])
         V, P = renderer._get_camera_matrices(self.scene)
         self._opaque_state()
-        self._pass(renderer, renderer._sorted_mesh_nodes(self.scene), flags,
+        self._pass(renderer, self.draw_order, flags,
                    pyrender.constants.ProgramFlags.USE_MATERIAL, V, P,
                    per_primitive=lambda program, node, primitive: _set_uniform(
                        program, "color", self.seg_colors[node] / 255.0))
@@ -638,7 +646,7 @@ class SceneRenderer:
             _set_uniform(program, "box_scale", scale)
 
         self._opaque_state()
-        self._pass(renderer, renderer._sorted_mesh_nodes(self.scene), pyrender.RenderFlags.FLAT,
+        self._pass(renderer, self.draw_order, pyrender.RenderFlags.FLAT,
                    pyrender.constants.ProgramFlags.NONE, V, P, per_primitive=box)
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
         return (_read_float_rgb(gl.GL_COLOR_ATTACHMENT1, self.width, self.height),
