@@ -401,6 +401,12 @@ class SceneRenderer:
             pose = self.scene.get_pose(node)
             eye = self.scene.centroid + pose[:3, 2] * self.scene.scale
             node.light.focus_view = tuple((pose[:3, :3].T @ -eye)[:2])
+        # Each sun's shadow camera (V, P), placed once for the scene as focus_view assumes.
+        # pyrender would place it again at every frame from the bounds of all meshes, which the
+        # objects' rotated boxes change, shifting the map by fractions of a texel each frame.
+        shadow_flags = pyrender.RenderFlags.OFFSCREEN | pyrender.RenderFlags.SHADOWS_DIRECTIONAL
+        self.shadow_cameras = [self.renderer._renderer._get_light_cam_matrices(
+            self.scene, node, shadow_flags) for node in self.sun_nodes]
         K = geometry.intrinsics_from_lens(description.camera.focal_mm,
                                           description.camera.sensor_mm, self.height, self.width)
         camera = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5,
@@ -532,14 +538,14 @@ class SceneRenderer:
         """Draw sun `index`'s shadow map; returns its shadow clip from world matrix (4,4).
 
         A depth map holds each texel's nearest depth whatever the drawing order, so the
-        backdrop's depth (it never moves, nor does the sun) is drawn once per scene, kept, and
-        copied into the map before the objects are drawn: the same bits as drawing everything,
-        without rasterising the floor over the whole map at every frame.
+        backdrop's depth (neither it nor the sun's shadow camera moves) is drawn once per
+        scene, kept, and copied into the map before the objects are drawn: the same bits as
+        drawing everything, without rasterising the floor over the whole map at every frame.
         """
         node = self.sun_nodes[index]
         shadow = node.light.shadow_texture
         renderer._configure_shadow_mapping_viewport(node.light, flags)  # bound and cleared
-        V, P = renderer._get_light_cam_matrices(self.scene, node, flags)
+        V, P = self.shadow_cameras[index]
         self._opaque_state()
         program_flags = _pyrender().constants.ProgramFlags.NONE
         backdrop = _backdrop_depth(index, shadow.width)
