@@ -12,7 +12,8 @@ surface normals and object coordinates.
   datagen's surface shaders writing the world-space shading normal and the object coordinates
   into two float32 attachments of the same framebuffer.
 - pyrender holds the meshes, textures, programs and shadow maps; datagen's own draw loops set
-  each frame's uniforms once per program (pyrender's loop costs more CPU than llvmpipe's
+  each frame's uniforms once per program, place each sun's shadow camera once per scene and
+  draw the backdrop's shadow depth once per scene (pyrender's loop costs more CPU than llvmpipe's
   drawing: docs/PERFORMANCE.md).
 - Motion blur (MOVi-F): the average of sub-frame renders at object poses interpolated between
   physics steps and at the camera pose of the same instant, over a shutter centred on the frame
@@ -209,8 +210,9 @@ def _begin_label_target(width: int, height: int, attachments: list[int]) -> None
     gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
 
 
-# Sun i's shadow depth of the backdrop alone, drawn once per scene (the backdrop and the sun never
-# move): {"texture": GL id, "size": texels, "owner": the token of the SceneRenderer that drew it}.
+# Sun i's shadow depth of the backdrop alone, drawn once per scene (within a scene neither the
+# backdrop nor the sun's shadow camera moves): {"texture": GL id, "size": texels, "owner": the
+# token of the SceneRenderer that drew it}.
 _BACKDROP_DEPTH: dict[int, dict] = {}
 
 
