@@ -50,6 +50,8 @@ def scene_arrays(scene) -> dict[str, np.ndarray]:
 
 
 def digests(save: Path | None) -> dict[str, dict[str, str]]:
+    """{scene: {array name or "shard:<member>": sha1}} of the check scenes; arrays kept in
+    save/<scene>.npz unless `save` is None."""
     from c4d_core.config import load_config
     from datagen import shards
     from datagen.generate import generate_scene

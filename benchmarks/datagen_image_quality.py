@@ -25,6 +25,7 @@ SUPERSAMPLE = 4  # the reference's resolution factor per axis: 16 samples a pixe
 
 
 def render_frames(out: Path) -> None:
+    """Write out (.npz): frames_<scene> and reference_<scene>, float64 (T,256,256,3) levels."""
     from c4d_core.config import load_config
     from datagen import render
     from datagen.assets import load_asset_library
@@ -59,6 +60,7 @@ def render_frames(out: Path) -> None:
 
 
 def compare(old_file: Path, new_file: Path) -> None:
+    """Print the figures of the module docstring for two `render` outputs."""
     old, new = np.load(old_file), np.load(new_file)
     for index in SCENES:
         print(f"scene {index}:")
