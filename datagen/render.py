@@ -1,7 +1,8 @@
 """Rendering with pyrender on EGL (Mesa's software renderer works): RGB, z-depth, segmentation,
 surface normals and object coordinates.
 
-- RGB: lit by a shadow-casting sun, a fill light and ambient light, 4x multisampled, with
+- RGB: lit by a shadow-casting sun, a fill light and ambient light, 4x multisampled, back faces
+  culled as in the label pass (so it shows the surfaces the labels describe), with
   datagen's own lit-pass shaders (datagen/shaders/: textured Lambert + Blinn-Phong, 4-tap shadow
   filter), several times cheaper than pyrender's PBR shader on a software renderer.
 - Labels: z-depth and instance segmentation with pyrender's segmentation shaders, drawn into a
@@ -11,7 +12,8 @@ surface normals and object coordinates.
   datagen's surface shaders writing the world-space shading normal and the object coordinates
   into two float32 attachments of the same framebuffer.
 - pyrender holds the meshes, textures, programs and shadow maps; datagen's own draw loops set
-  each frame's uniforms once per program (pyrender's loop costs more CPU than llvmpipe's
+  each frame's uniforms once per program, place each sun's shadow camera once per scene and
+  draw the backdrop's shadow depth once per scene (pyrender's loop costs more CPU than llvmpipe's
   drawing: docs/PERFORMANCE.md).
 - Motion blur (MOVi-F): the average of sub-frame renders at object poses interpolated between
   physics steps and at the camera pose of the same instant, over a shutter centred on the frame
@@ -208,6 +210,40 @@ def _begin_label_target(width: int, height: int, attachments: list[int]) -> None
     gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
 
 
+# Sun i's shadow depth of the backdrop alone, drawn once per scene (within a scene neither the
+# backdrop nor the sun's shadow camera moves): {"texture": GL id, "size": texels, "owner": the
+# token of the SceneRenderer that drew it}.
+_BACKDROP_DEPTH: dict[int, dict] = {}
+
+
+def _backdrop_depth(index: int, size: int) -> dict:
+    """The process's texture for sun `index`'s backdrop depth, (size, size), made in the shadow
+    maps' own format (pyrender's unsized GL_DEPTH_COMPONENT), so one copies into the other."""
+    from OpenGL import GL as gl
+
+    cached = _BACKDROP_DEPTH.get(index)
+    if cached is None or cached["size"] != size:
+        if cached is not None:
+            gl.glDeleteTextures(1, [cached["texture"]])
+        texture = int(gl.glGenTextures(1))
+        gl.glBindTexture(gl.GL_TEXTURE_2D, texture)
+        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_DEPTH_COMPONENT, size, size, 0,
+                        gl.GL_DEPTH_COMPONENT, gl.GL_FLOAT, None)
+        # One level without mipmaps: complete (so copyable) only with a non-mipmap filter.
+        gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MIN_FILTER, gl.GL_NEAREST)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
+        cached = _BACKDROP_DEPTH[index] = {"texture": texture, "size": size, "owner": None}
+    return cached
+
+
+def _copy_depth(source: int, target: int, size: int) -> None:
+    """Copy a (size, size) depth texture into another of the same format (GL texture ids)."""
+    from OpenGL import GL as gl
+
+    gl.glCopyImageSubData(source, gl.GL_TEXTURE_2D, 0, 0, 0, 0, target, gl.GL_TEXTURE_2D, 0, 0, 0, 0,
+                          size, size, 1)
+
+
 def linear_depth(window_depth: np.ndarray, znear: float, zfar: float) -> np.ndarray:
     """z-depth (H,W) float32 from OpenGL window depths in [0,1] (1: nothing drawn -> 0), by
     pyrender's formula and float32 operations."""
@@ -247,7 +283,7 @@ def _textured_primitive(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
         source=image, source_channels="RGB",
         sampler=pyrender.Sampler(wrapS=pyrender.GLTF.REPEAT, wrapT=pyrender.GLTF.REPEAT))
     material = pyrender.MetallicRoughnessMaterial(
-        baseColorTexture=texture, metallicFactor=0.0, roughnessFactor=roughness, doubleSided=True)
+        baseColorTexture=texture, metallicFactor=0.0, roughnessFactor=roughness)
     return pyrender.Primitive(positions=vertices.astype(np.float32),
                               normals=normals.astype(np.float32),
                               texcoord_0=uv.astype(np.float32), indices=faces.astype(np.int32),
@@ -341,7 +377,7 @@ class SceneRenderer:
         else:
             floor_image = dome_image = assets.background(description.background_id)
             equirect = True
-        backdrop = self.scene.add(backdrop_mesh(
+        self.backdrop = backdrop = self.scene.add(backdrop_mesh(
             float(cfg.backdrop.dome_radius), float(cfg.backdrop.floor_tile), floor_image,
             dome_image, equirect))
         # pyrender casts shadows from every directional light when asked to, so only the sun is
@@ -362,10 +398,17 @@ class SceneRenderer:
         self.light_counts = (len(self.sun_nodes), len(self.point_nodes))
         self._programs: dict = {}  # (primitive, flags, program flags) -> pyrender program
         self._uploaded: set[int] = set()  # render flags whose meshes and textures are uploaded
+        self._token = object()  # marks the backdrop depths this renderer drew (_BACKDROP_DEPTH)
         for node in self.sun_nodes:  # pyrender puts the shadow camera at centroid - direction * scale
             pose = self.scene.get_pose(node)
             eye = self.scene.centroid + pose[:3, 2] * self.scene.scale
             node.light.focus_view = tuple((pose[:3, :3].T @ -eye)[:2])
+        # Each sun's shadow camera (V, P), placed once for the scene as focus_view assumes.
+        # pyrender would place it again at every frame from the bounds of all meshes, which the
+        # objects' rotated boxes change, shifting the map by fractions of a texel each frame.
+        shadow_flags = pyrender.RenderFlags.OFFSCREEN | pyrender.RenderFlags.SHADOWS_DIRECTIONAL
+        self.shadow_cameras = [self.renderer._renderer._get_light_cam_matrices(
+            self.scene, node, shadow_flags) for node in self.sun_nodes]
         K = geometry.intrinsics_from_lens(description.camera.focal_mm,
                                           description.camera.sensor_mm, self.height, self.width)
         camera = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5,
@@ -379,9 +422,17 @@ class SceneRenderer:
                                 for k, node in enumerate(self.object_nodes, start=1)})
 
     def _set_poses(self, object_to_world: np.ndarray, cam_to_world: np.ndarray) -> None:
+        """Pose the objects (K,4,4) and the camera (4,4, OpenCV) for one render, and keep every
+        mesh node's world pose (pyrender's get_pose walks the scene graph on each call) and
+        pyrender's draw order (`_sorted_mesh_nodes`: the opaque meshes from the farthest to the
+        nearest, node origin to camera; the same set order and the same keys, so the same order)."""
         for node, pose in zip(self.object_nodes, object_to_world):
             self.scene.set_pose(node, pose)
         self.scene.set_pose(self.camera_node, cam_to_world @ OPENCV_TO_OPENGL)
+        self.world = {node: self.scene.get_pose(node) for node in self.scene.mesh_nodes}
+        camera = self.scene.get_pose(self.camera_node)[:3, 3]
+        self.draw_order = sorted(
+            self.world, key=lambda node: -np.linalg.norm(self.world[node][:3, 3] - camera))
 
     # The three passes draw pyrender's uploaded meshes with pyrender's programs, framebuffers
     # and shadow maps, in pyrender's draw order and GL state, but set each pass's per-frame
@@ -423,20 +474,18 @@ class SceneRenderer:
                                    ctypes.c_void_p(0), instances)
         primitive._unbind()
 
-    def _opaque_state(self, cull: bool) -> None:
-        """pyrender's state for an opaque primitive: replace-blending, filled, back faces culled
-        unless double-sided."""
+    def _opaque_state(self) -> None:
+        """Every pass's state: filled triangles, back faces culled (every pass draws the same
+        triangles, so the lit image shows the surfaces the labels describe), blending off
+        (pyrender's replace-blending, ONE/ZERO, writes the same bits and costs llvmpipe a read
+        of every covered sample)."""
         from OpenGL import GL as gl
 
-        gl.glEnable(gl.GL_BLEND)
-        gl.glBlendFunc(gl.GL_ONE, gl.GL_ZERO)
+        gl.glDisable(gl.GL_BLEND)
         gl.glPolygonMode(gl.GL_FRONT_AND_BACK, gl.GL_FILL)
         gl.glDisable(gl.GL_PROGRAM_POINT_SIZE)
-        if cull:
-            gl.glEnable(gl.GL_CULL_FACE)
-            gl.glCullFace(gl.GL_BACK)
-        else:
-            gl.glDisable(gl.GL_CULL_FACE)
+        gl.glEnable(gl.GL_CULL_FACE)
+        gl.glCullFace(gl.GL_BACK)
 
     def _pass(self, renderer, nodes, flags: int, program_flags: int, V, P, per_program=None,
               per_primitive=None) -> None:
@@ -446,7 +495,7 @@ class SceneRenderer:
         framed = set()
         program = None
         for node in nodes:
-            pose = self.scene.get_pose(node)
+            pose = self.world[node]
             for primitive in node.mesh.primitives:
                 program = self._program(renderer, primitive, flags, program_flags)
                 if program._program_id not in framed:
@@ -487,6 +536,31 @@ class SceneRenderer:
             _set_uniform(program, name + "color", node.light.color)
             _set_uniform(program, name + "intensity", node.light.intensity)
 
+    def _shadow_map(self, renderer, nodes, index: int, flags: int) -> np.ndarray:
+        """Draw sun `index`'s shadow map; returns its shadow clip from world matrix (4,4).
+
+        A depth map holds each texel's nearest depth whatever the drawing order, so the
+        backdrop's depth (neither it nor the sun's shadow camera moves) is drawn once per
+        scene, kept, and copied into the map before the objects are drawn: the same bits as
+        drawing everything, without rasterising the floor over the whole map at every frame.
+        """
+        node = self.sun_nodes[index]
+        shadow = node.light.shadow_texture
+        renderer._configure_shadow_mapping_viewport(node.light, flags)  # bound and cleared
+        V, P = self.shadow_cameras[index]
+        self._opaque_state()
+        program_flags = _pyrender().constants.ProgramFlags.NONE
+        backdrop = _backdrop_depth(index, shadow.width)
+        if backdrop["owner"] is self._token:
+            _copy_depth(backdrop["texture"], shadow._texid, shadow.width)
+        else:
+            self._pass(renderer, [self.backdrop], flags, program_flags, V, P)
+            _copy_depth(shadow._texid, backdrop["texture"], shadow.width)
+            backdrop["owner"] = self._token
+        self._pass(renderer, [n for n in nodes if n is not self.backdrop], flags, program_flags,
+                   V, P)
+        return P.dot(V)
+
     def render_rgb(self, object_to_world: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
         """uint8 (H,W,3) lit image. object_to_world (K,4,4), cam_to_world (4,4) OpenCV."""
         from OpenGL import GL as gl
@@ -497,15 +571,11 @@ class SceneRenderer:
         flags = RenderFlags.OFFSCREEN | (RenderFlags.SHADOWS_DIRECTIONAL if self.shadows else 0)
         renderer = self._begin(flags)
         scene = self.scene
-        nodes = renderer._sorted_mesh_nodes(scene)
+        nodes = self.draw_order
         light_matrices = []
         if self.shadows:  # shadow maps: depth from each sun's orthographic camera
-            for node in self.sun_nodes:
-                renderer._configure_shadow_mapping_viewport(node.light, flags)
-                V, P = renderer._get_light_cam_matrices(scene, node, flags)
-                self._opaque_state(cull=True)
-                self._pass(renderer, nodes, flags, ProgramFlags.NONE, V, P)
-                light_matrices.append(P.dot(V))
+            for index in range(len(self.sun_nodes)):
+                light_matrices.append(self._shadow_map(renderer, nodes, index, flags))
         renderer._configure_forward_pass_viewport(flags)
         gl.glClearColor(*scene.bg_color)
         gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
@@ -520,8 +590,8 @@ class SceneRenderer:
             _set_uniform(program, "material.base_color_texture", material_unit)
             _set_uniform(program, "material.base_color_factor", material.baseColorFactor)
             _set_uniform(program, "material.roughness_factor", material.roughnessFactor)
-            self._opaque_state(cull=not material.doubleSided)
 
+        self._opaque_state()
         V, P = renderer._get_camera_matrices(scene)
         self._pass(renderer, nodes, flags, ProgramFlags.USE_MATERIAL, V, P,
                    lambda program: self._bind_lights(program, shadow_unit, light_matrices),
@@ -546,8 +616,8 @@ class SceneRenderer:
         renderer = self._begin(flags)
         _begin_label_target(self.width, self.height, [gl.GL_COLOR_ATTACHMENT0])
         V, P = renderer._get_camera_matrices(self.scene)
-        self._opaque_state(cull=True)
-        self._pass(renderer, renderer._sorted_mesh_nodes(self.scene), flags,
+        self._opaque_state()
+        self._pass(renderer, self.draw_order, flags,
                    pyrender.constants.ProgramFlags.USE_MATERIAL, V, P,
                    per_primitive=lambda program, node, primitive: _set_uniform(
                        program, "color", self.seg_colors[node] / 255.0))
@@ -583,8 +653,8 @@ class SceneRenderer:
             _set_uniform(program, "box_min", low)
             _set_uniform(program, "box_scale", scale)
 
-        self._opaque_state(cull=True)
-        self._pass(renderer, renderer._sorted_mesh_nodes(self.scene), pyrender.RenderFlags.FLAT,
+        self._opaque_state()
+        self._pass(renderer, self.draw_order, pyrender.RenderFlags.FLAT,
                    pyrender.constants.ProgramFlags.NONE, V, P, per_primitive=box)
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
         return (_read_float_rgb(gl.GL_COLOR_ATTACHMENT1, self.width, self.height),

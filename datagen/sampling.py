@@ -153,23 +153,29 @@ def _candidate_poses(rng: np.random.Generator, hull: np.ndarray, scale: float,
     return np.concatenate([positions, quats], axis=1)
 
 
+def _config_array(rows) -> np.ndarray:
+    """float64 (n,m) array of a config's list of lists (a region, a velocity range), made from
+    plain lists: numpy probes an omegaconf list for array attributes, ~0.1 ms of raised errors."""
+    return np.array([list(row) for row in rows], dtype=np.float64)
+
+
 def _sample_objects(cfg, rng: np.random.Generator, assets: AssetLibrary) -> list[ObjectSpec]:
     c = cfg.objects
+    regions = {False: _config_array(c.static_region), True: _config_array(c.tossed_region)}
+    tossed_velocity = _config_array(c.tossed_velocity)
     num_static = int(rng.integers(c.num_static[0], c.num_static[1] + 1))
     num_tossed = int(rng.integers(c.num_tossed[0], c.num_tossed[1] + 1))
     specs = []
     for tossed in [False] * num_static + [True] * num_tossed:
         asset_id, asset = assets.draw(rng)  # skips broken assets, warning once for each
         scale = float(rng.uniform(*c.scale))
-        region = np.array(c.tossed_region if tossed else c.static_region, dtype=np.float64)
         specs.append(ObjectSpec(
             asset_id=asset_id,
             scale=scale,
             tossed=tossed,
-            candidates=_candidate_poses(rng, asset.hull_vertices, scale, region,
+            candidates=_candidate_poses(rng, asset.hull_vertices, scale, regions[tossed],
                                         int(c.placement_tries)),
-            velocity=rng.uniform(*np.array(c.tossed_velocity, dtype=np.float64)) if tossed
-            else np.zeros(3),
+            velocity=rng.uniform(*tossed_velocity) if tossed else np.zeros(3),
             mass=float(c.density) * asset.volume * scale**3,
             friction=float(c.friction),
             restitution=float(c.restitution),

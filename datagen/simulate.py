@@ -181,8 +181,7 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
 
         placed = sorted(bodies)
         num_steps = (description.num_frames + 1) * steps_per_frame + 1
-        positions = np.zeros((len(placed), num_steps, 3))
-        quats_xyzw = np.zeros((len(placed), num_steps, 4))
+        states = []  # per step, per placed object: pybullet's (position, orientation (x,y,z,w))
         velocities = np.zeros((2, len(placed), description.num_frames + 2, 3))  # linear, angular
         start_velocities = np.array(
             [pb.getBaseVelocity(bodies[i], physicsClientId=client)[0] for i in placed]
@@ -194,16 +193,20 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
                 pb.stepSimulation(physicsClientId=client)
                 if contacts:
                     contact_rows += _contacts(client, step, index_of)
-            for k, i in enumerate(placed):
-                position, orientation = pb.getBasePositionAndOrientation(
-                    bodies[i], physicsClientId=client)
-                positions[k, step] = position
-                quats_xyzw[k, step] = orientation
-                if step % steps_per_frame == 0:
+            states.append([pb.getBasePositionAndOrientation(bodies[i], physicsClientId=client)
+                           for i in placed])
+            if step % steps_per_frame == 0:
+                for k, i in enumerate(placed):
                     velocities[:, k, step // steps_per_frame] = pb.getBaseVelocity(
                         bodies[i], physicsClientId=client)
     finally:
         pb.disconnect(physicsClientId=client)
+    # (K,S,3) and (K,S,4), kept in Python lists while stepping (a numpy row write per step and
+    # object cost more than pybullet's query)
+    positions = np.array([[p for p, _ in row] for row in states]).reshape(num_steps, -1, 3)
+    quats_xyzw = np.array([[q for _, q in row] for row in states]).reshape(num_steps, -1, 4)
+    positions, quats_xyzw = (np.ascontiguousarray(a.transpose(1, 0, 2))
+                             for a in (positions, quats_xyzw))
     return SimulationResult(placed, steps_per_frame, positions, geometry.quat_from_xyzw(quats_xyzw),
                             start_velocities, settle_steps, velocities[0], velocities[1],
                             np.array(contact_rows, CONTACT_DTYPE) if contacts else None)

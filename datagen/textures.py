@@ -83,11 +83,17 @@ def procedural_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     base = fractal_noise(rng, size)  # (S,S) large-scale colour variation
     detail = pattern(rng, size, PATTERNS[rng.integers(len(PATTERNS))])  # (S,S)
     grain = fractal_noise(rng, size, octaves=2, base_cells=size // 8)  # (S,S) fine grain
-    colour = palette[0] * (1 - base[..., None]) + palette[1] * base[..., None]  # (S,S,3)
-    mix = rng.uniform(0.35, 0.8)
-    colour = colour * (1 - mix * detail[..., None]) + palette[2] * (mix * detail[..., None])
+    # In place where the dtype stays (float32, then float64 from the float64 `mix` on): the same
+    # operations and roundings as the expressions written out, with fewer (S,S,3) temporaries.
+    colour = palette[0] * (1 - base[..., None])  # (S,S,3) float32
+    colour += palette[1] * base[..., None]
+    weight = rng.uniform(0.35, 0.8) * detail[..., None]  # (S,S,1) float64
+    colour = colour * (1 - weight)  # float64
+    colour += palette[2] * weight
     colour *= 0.8 + 0.4 * grain[..., None]
-    return (np.clip(colour, 0, 1) * 255).astype(np.uint8)
+    np.clip(colour, 0, 1, out=colour)
+    colour *= 255
+    return colour.astype(np.uint8)
 
 
 def box_uv(vertices: np.ndarray, faces: np.ndarray, tiles: float = 1.0):

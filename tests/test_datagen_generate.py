@@ -232,6 +232,45 @@ def test_movi_f_blur_is_the_mean_of_sub_frame_renders(assets):
     np.testing.assert_array_equal(segmentation, scene.segmentation[t])
 
 
+def _shadow_map(renderer) -> np.ndarray:
+    """The first sun's shadow map as float32 (S,S), read back from its texture."""
+    from OpenGL import GL as gl
+
+    renderer.sun_nodes[0].light.shadow_texture._bind()
+    return np.asarray(gl.glGetTexImage(gl.GL_TEXTURE_2D, 0, gl.GL_DEPTH_COMPONENT, gl.GL_FLOAT))
+
+
+def test_shadow_map_from_the_kept_backdrop_depth_is_the_whole_scene_drawn(cfg, assets, scene):
+    """The backdrop's shadow depth is drawn once per scene and copied into each frame's map:
+    the map must hold exactly the bits of drawing every mesh, and the depth another scene's
+    renderer kept must not leak into a later renderer's frames."""
+    description, sim = describe_and_simulate(cfg, MOVIE_INDEX, assets)
+    renderer = render.SceneRenderer(description, sim.placed, assets, cfg)
+    poses = sim.poses_at(np.arange(8.0))  # (K,8,4,4)
+    cameras = description.camera.pose_at(np.arange(8.0), 8)  # (8,4,4)
+    first = renderer.render_rgb(poses[:, 0], cameras[0])
+    kept = renderer.render_rgb(poses[:, 5], cameras[5])
+    np.testing.assert_array_equal(kept, scene.rgb[5])
+    kept_map = _shadow_map(renderer)
+    pyrender = render._pyrender()
+    flags = pyrender.RenderFlags.OFFSCREEN | pyrender.RenderFlags.SHADOWS_DIRECTIONAL
+    offscreen = renderer.renderer._renderer
+    sun = renderer.sun_nodes[0]
+    offscreen._configure_shadow_mapping_viewport(sun.light, flags)
+    V, P = renderer.shadow_cameras[0]
+    renderer._opaque_state()
+    renderer._pass(offscreen, renderer.draw_order, flags, pyrender.constants.ProgramFlags.NONE,
+                   V, P)  # every mesh, the backdrop among them in pyrender's order
+    np.testing.assert_array_equal(kept_map, _shadow_map(renderer))
+    assert (kept_map < 1).mean() > 0.5  # the floor and the objects are in it
+    other_description, other_sim = describe_and_simulate(cfg, MOVIE_INDEX + 1, assets)
+    other = render.SceneRenderer(other_description, other_sim.placed, assets, cfg)
+    other.render_rgb(other_sim.poses_at(np.zeros(1))[:, 0],
+                     other_description.camera.pose_at(np.zeros(1), 8)[0])
+    again = render.SceneRenderer(description, sim.placed, assets, cfg)
+    np.testing.assert_array_equal(again.render_rgb(poses[:, 0], cameras[0]), first)
+
+
 def test_panning_camera_moves_its_look_at_point(assets):
     cfg = load_config("datagen", "movi-e-panning", overrides=TINY)
     description, _ = describe_and_simulate(cfg, 0, assets)

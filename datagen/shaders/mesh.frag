@@ -84,7 +84,7 @@ void main()
     vec3 to_camera = normalize(cam_pos - frag_position);
     vec3 n = normalize(frag_normal);
     if (dot(n, to_camera) < 0.0) {
-        n = -n;  // two-sided lighting
+        n = -n;  // smooth shading tilts a front face's normal away near a silhouette
     }
     float shininess = 2.0 / max(pow(material.roughness_factor, 4.0), 1e-3);
     float specular = 0.25 * (1.0 - material.roughness_factor);
