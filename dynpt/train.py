@@ -27,8 +27,10 @@ import os
 import random
 import re
 import shutil
+import sys
 import threading
 import time
+import traceback
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -203,6 +205,19 @@ def _quiet_disk_errors(args) -> None:
     no traceback (the training thread meets it too and reports it as one line)."""
     if not (isinstance(args.exc_value, OSError) and args.exc_value.errno in DISK_ERRNOS):
         threading.__excepthook__(args)
+
+
+def _quiet_stopped_workers(hook):
+    """`sys.excepthook` while training and after Ctrl-C: multiprocessing's resource-sharer thread
+    (it hands a batch's file descriptors to the training process) reports through it what it
+    meets when a loader worker stops mid-handover (Ctrl-C, the end of the run): the connection
+    reset or closed by that worker. Those print nothing; everything else goes to `hook`."""
+    def excepthook(kind, value, tb):
+        sharer = os.path.join("multiprocessing", "resource_sharer.py")
+        if not (issubclass(kind, (ConnectionError, EOFError)) and any(
+                frame.f_code.co_filename.endswith(sharer) for frame, _ in traceback.walk_tb(tb))):
+            hook(kind, value, tb)
+    return excepthook
 
 
 def next_batch(batches):
@@ -537,12 +552,15 @@ def train(cfg, resume: bool = False) -> dict:
                         "to shard sets made with `c4d datagen`")
     trainer = Trainer(cfg, resume=resume)
     hook, threading.excepthook = threading.excepthook, _quiet_disk_errors
+    sys_hook, sys.excepthook = sys.excepthook, _quiet_stopped_workers(sys.excepthook)
+    interrupted = False
     try:
         try:
             return trainer.fit()
         finally:
             trainer.close()
     except KeyboardInterrupt:  # Ctrl-C: every file is whole (atomic writes); say how to go on
+        interrupted = True
         if trainer.main:
             saved = latest_checkpoint(trainer.out_dir)
             log.warning("interrupted at step %d; %s", trainer.step,
@@ -555,3 +573,5 @@ def train(cfg, resume: bool = False) -> dict:
         raise disk_error(exc.filename or trainer.out_dir / "tb", exc) from exc
     finally:
         threading.excepthook = hook
+        if not interrupted:  # after Ctrl-C the process ends, and stopped workers may still be met
+            sys.excepthook = sys_hook

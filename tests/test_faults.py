@@ -449,6 +449,33 @@ def test_training_killed_then_resumed_is_bit_identical(tmp_path, uninterrupted, 
     assert_same_run(uninterrupted, out)
 
 
+STOPPED_WORKER = """
+import os, socket, sys, time
+from multiprocessing import resource_sharer
+from dynpt.train import _quiet_stopped_workers
+if sys.argv[1] == "training":
+    sys.excepthook = _quiet_stopped_workers(sys.excepthook)
+read, _ = os.pipe()
+resource_sharer.DupFd(read)  # a file descriptor offered to another process: the sharer's thread
+client = socket.socket(socket.AF_UNIX)  # a loader worker stopped mid-handover
+client.connect(resource_sharer._resource_sharer._address)
+client.close()
+time.sleep(1.0)
+print("still running")
+"""
+
+
+@pytest.mark.parametrize("hook", ["training", "default"])
+def test_a_worker_stopped_mid_handover_prints_no_traceback_while_training(hook):
+    """The resource-sharer thread meets a connection closed by a stopped loader worker (as after
+    Ctrl-C with workers): the training's excepthook prints nothing; Python's own prints the
+    traceback (the control: the scenario is real)."""
+    proc = subprocess.run([sys.executable, "-c", STOPPED_WORKER, hook], env=ENV, cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.strip() == "still running", proc.stderr
+    assert ("Traceback" in proc.stderr) == (hook == "default"), proc.stderr
+
+
 def test_training_with_loader_workers_ctrl_c_and_kill_leave_no_orphans(tmp_path):
     """Ctrl-C to a run with two DataLoader workers: exit 130 with how to go on, the workers gone,
     and --resume continues from the newest checkpoint; kill -9 of the trainer alone: its workers
