@@ -161,14 +161,15 @@ def step_times(model: str, steps: int, inputs: str, overrides: list[str], device
     process (by `main`) on the batch saved at `inputs`, as `Trainer.train_step` does it: forward
     and loss (under bfloat16 autocast with `bf16` on a GPU), backward, gradient clipping, AdamW
     and OneCycle steps. On a GPU each step is timed between CUDA synchronisations."""
-    from dynpt.device import peak_memory, reset_peak_memory, training_autocast_dtype
+    from dynpt.device import (autocast, bf16_supported, peak_memory, reset_peak_memory,
+                              training_autocast_dtype)
     from dynpt.losses import LossWeights, dynpt_loss
     from dynpt.model import build_model
     from dynpt.train import param_groups
 
     base_rss = _peak_rss_gib()  # after the imports
     dev = torch.device(device)
-    amp_dtype = training_autocast_dtype(dev.type, bf16, dev.type == "cuda" and torch.cuda.is_bf16_supported())
+    amp_dtype = training_autocast_dtype(dev.type, bf16, bf16_supported(dev))  # as the Trainer's
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     preset, preset_overrides, size_factor = MODELS[model]
     cfg = load_config("dynpt", preset, overrides=[*preset_overrides, *overrides])
@@ -195,7 +196,7 @@ def step_times(model: str, steps: int, inputs: str, overrides: list[str], device
     for _ in range(steps + 1):  # the first step warms up allocators (and chooses kernels)
         sync()
         start, cpu_start = time.perf_counter(), time.process_time()
-        with torch.autocast(dev.type, amp_dtype or torch.bfloat16, enabled=amp_dtype is not None):
+        with autocast(dev.type, amp_dtype):
             loss, _ = dynpt_loss(net(video, queries), target, weights)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), tc.grad_clip)
@@ -206,12 +207,13 @@ def step_times(model: str, steps: int, inputs: str, overrides: list[str], device
         times.append(time.perf_counter() - start)
         cpu.append(time.process_time() - cpu_start)
     B, T, _, H, W = video.shape
+    peak_gpu = peak_memory(dev)  # bytes; None on a CPU
     return {"model": model, "B": B, "T": T, "HxW": f"{H}x{W}", "N": queries.shape[1],
             "trainable_params": sum(p.numel() for p in net.parameters() if p.requires_grad),
             "step_s": statistics.median(times[1:]), "all_step_s": times[1:],
             "step_cpu_s": statistics.median(cpu[1:]), "all_step_cpu_s": cpu[1:],
             "peak_rss_gib": _peak_rss_gib(), "base_rss_gib": base_rss,
-            "peak_gpu_gib": None if peak_memory(dev) is None else peak_memory(dev) / 2**30}
+            "peak_gpu_gib": None if peak_gpu is None else peak_gpu / 2**30}
 
 
 def compare_steps(systems: list[str], args) -> None:
