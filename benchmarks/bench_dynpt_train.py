@@ -57,7 +57,9 @@ import numpy as np
 import torch
 
 from c4d_core.config import load_config
+from c4d_core.system import allocator_environment
 
+GLIBC, KEPT = "+glibc", "+kept"  # --malloc-variants: the other allocator (see step_times)
 MODELS = {  # name -> (preset, overrides, frame size factor: the clip's H and W are multiplied by it)
     "tiny": ("tiny-cpu", [], 1),
     "tiny-2x": ("tiny-cpu-2x", [], 2),  # trains on crops twice the size of tiny's, same videos
@@ -156,17 +158,22 @@ def _peak_rss_gib() -> float:
 
 
 def step_times(model: str, steps: int, inputs: str, overrides: list[str], device: str = "cpu",
-               bf16: bool = False) -> dict:
+               bf16: bool = False, glibc_malloc: bool = False) -> dict:
     """CPU and wall seconds per optimiser step, peak RSS and (on a GPU) peak GPU memory of a fresh
     process (by `main`) on the batch saved at `inputs`, as `Trainer.train_step` does it: forward
     and loss (under bfloat16 autocast with `bf16` on a GPU), backward, gradient clipping, AdamW
-    and OneCycle steps. On a GPU each step is timed between CUDA synchronisations."""
+    and OneCycle steps, with the allocator as `c4d train` sets it (`prepare_allocator(every_size=
+    True)`) or, with `glibc_malloc`, glibc's defaults. On a GPU each step is timed between CUDA
+    synchronisations."""
+    from c4d_core.system import prepare_allocator
     from dynpt.device import (autocast, bf16_supported, peak_memory, reset_peak_memory,
                               training_autocast_dtype)
     from dynpt.losses import LossWeights, dynpt_loss
     from dynpt.model import build_model
     from dynpt.train import param_groups
 
+    if not glibc_malloc:
+        prepare_allocator(every_size=True)  # as `c4d train` (dynpt.cli_train) sets it
     base_rss = _peak_rss_gib()  # after the imports
     dev = torch.device(device)
     amp_dtype = training_autocast_dtype(dev.type, bf16, bf16_supported(dev))  # as the Trainer's
@@ -228,15 +235,18 @@ def compare_steps(systems: list[str], args) -> None:
     device = ["--device", args.device] + ["--bf16"] * args.bf16
     for repeat in range(args.repeats):
         for name in systems:
-            if name == "cotracker3":
+            env = dict(os.environ)
+            if name.startswith("cotracker3"):
                 cmd = [sys.executable, args.cotracker_step, "--inputs", str(inputs), "--model",
                        args.cotracker_model, "--window", str(args.cotracker_window), "--iters",
                        str(args.iters), "--steps", str(args.steps), *device]
+                if name.endswith(KEPT):  # c4d train's allocator, through glibc's variables
+                    env.update(allocator_environment(every_size=True))
             else:
-                cmd = [sys.executable, __file__, "--only-steps", name.split("@")[0], "--steps", str(args.steps),
-                       "--inputs", str(inputs), *[f"--set={o}" for o in args.set],
-                       *([f"--set=model.train_iters={args.iters}"] if args.iters else []), *device]
-            env = dict(os.environ)
+                cmd = [sys.executable, __file__, "--only-steps", name.split("@")[0].removesuffix(GLIBC),
+                       "--steps", str(args.steps), "--inputs", str(inputs), *[f"--set={o}" for o in args.set],
+                       *([f"--set=model.train_iters={args.iters}"] if args.iters else []), *device,
+                       *["--glibc-malloc"] * name.endswith(GLIBC)]
             if name.endswith("@before"):  # the same model from the code in --before
                 env["PYTHONPATH"] = os.pathsep.join([args.before, env.get("PYTHONPATH", "")])
             out = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -311,12 +321,17 @@ def main() -> None:
     parser.add_argument("--cotracker-window", type=int, default=16)
     parser.add_argument("--device", default="cpu", help="where the train steps run: cpu or cuda")
     parser.add_argument("--bf16", action="store_true", help="on a GPU: bfloat16 autocast (train.bf16)")
+    parser.add_argument("--malloc-variants", action="store_true",
+                        help="also time each DynPT model with glibc's default allocator (+glibc) and "
+                        "CoTracker3 with the one `c4d train` sets (+kept): how much of a ratio is the "
+                        "allocator")
     parser.add_argument("--only-steps", help=argparse.SUPPRESS)  # child process mode
+    parser.add_argument("--glibc-malloc", action="store_true", help=argparse.SUPPRESS)  # child mode
     parser.add_argument("--inputs", help=argparse.SUPPRESS)  # child process mode: the batch
     args = parser.parse_args()
     if args.only_steps:
         print(json.dumps(step_times(args.only_steps, args.steps, args.inputs, args.set, args.device,
-                                    args.bf16)))
+                                    args.bf16, args.glibc_malloc)))
         return
 
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average "
@@ -351,7 +366,12 @@ def main() -> None:
                       f"{_runs(cpu)} worker CPU ms/clip; ratio to 0 workers "
                       f"{statistics.median(rates) / statistics.median(base):.2f}x", flush=True)
     models = [m for m in args.models.split(",") if m]
-    systems = models + [f"{m}@before" for m in models if args.before] + ["cotracker3"] * bool(args.cotracker_step)
+    systems = models + [f"{m}@before" for m in models if args.before]
+    cotracker = ["cotracker3"] * bool(args.cotracker_step)
+    if args.malloc_variants:
+        systems += [f"{m}{GLIBC}" for m in models]
+        cotracker = [f"{c}{KEPT}" for c in cotracker] + cotracker
+    systems += cotracker  # the reference last: CoTracker3 as its own script runs
     if systems:
         compare_steps(systems, args)
 

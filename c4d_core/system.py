@@ -73,21 +73,36 @@ _MALLOC_SETTINGS = (
     ("MALLOC_TOP_PAD_", -2, 64 << 20),  # M_TOP_PAD
     ("MALLOC_TRIM_THRESHOLD_", -1, 1 << 30),  # M_TRIM_THRESHOLD
 )
+# With `every_size`, for a loop that allocates the same tensors at every step (training): blocks
+# of every size come from the heap (no mapping: glibc caps the mmap threshold at 32 MiB, and a
+# training step's activations are larger) and the heap is never trimmed, so the memory of one
+# step's peak is reused by the next, as PyTorch's caching allocator keeps it on a GPU.
+_MALLOC_EVERY_SIZE = (
+    ("MALLOC_MMAP_MAX_", -4, 0),  # M_MMAP_MAX: no block mapped on its own
+    ("MALLOC_TRIM_THRESHOLD_", -1, -1),  # M_TRIM_THRESHOLD; -1: never trim (mallopt(3))
+)
+# Set beside the variables: a child process (`c4d demo`'s `c4d train`, torchrun's workers) that
+# finds them tells its parent's settings from the user's by it.
+_SET_BY_US = ("C4D_MALLOC", "prepare_allocator")
 # The user chose an allocator or malloc settings before this process started.
-_USER_MALLOC = (any(name in os.environ for name, _, _ in _MALLOC_SETTINGS) or bool(os.environ.get("LD_PRELOAD"))
-                or "malloc" in os.environ.get("GLIBC_TUNABLES", ""))
+_USER_MALLOC = (bool(os.environ.get("LD_PRELOAD")) or "malloc" in os.environ.get("GLIBC_TUNABLES", "")
+                or (os.environ.get(_SET_BY_US[0]) != _SET_BY_US[1]
+                    and any(name in os.environ for name, _, _ in (*_MALLOC_SETTINGS, *_MALLOC_EVERY_SIZE))))
 
 
-def prepare_allocator() -> bool:
+def prepare_allocator(every_size: bool = False) -> bool:
     """Keep freed memory in this process and its children for reuse; return whether it was set.
 
     With glibc's defaults a training step returns its temporaries' memory to the kernel and takes
     it back as fresh zeroed pages on the next step: ~20,000 page faults per step of the demo's
     training (tiny-cpu-2x, batch 4), under 500 with these settings, and the step 0.87x the time
     (docs/perf/threads.md). Peak memory is unchanged; the process keeps it until it exits, as
-    PyTorch's caching allocators do. Applied now (mallopt) and, for child processes, through
-    glibc's environment variables. Left alone where the user chose an allocator or malloc
-    settings (LD_PRELOAD, GLIBC_TUNABLES, a MALLOC_*_ variable) and off glibc."""
+    PyTorch's caching allocators do. `every_size` (`c4d train`) keeps blocks over 32 MiB too: at
+    the paper's clip scaled to this CPU (24x192x256, 192 tracks) the step faulted in ~19 GiB of
+    pages, 0.87x the CPU time with them kept, the same peak (docs/PERFORMANCE.md). Applied now
+    (mallopt) and, for child processes, through glibc's environment variables. Left alone where
+    the user chose an allocator or malloc settings (LD_PRELOAD, GLIBC_TUNABLES, a MALLOC_*_
+    variable) and off glibc."""
     if _USER_MALLOC:
         return False
     try:
@@ -96,11 +111,22 @@ def prepare_allocator() -> bool:
         mallopt = libc.mallopt
     except (OSError, AttributeError):
         return False
-    for name, param, value in _MALLOC_SETTINGS:
+    for name, param, value in _malloc_settings(every_size):
         if not mallopt(param, value):
             return False
         os.environ[name] = str(value)
+    os.environ[_SET_BY_US[0]] = _SET_BY_US[1]
     return True
+
+
+def allocator_environment(every_size: bool = False) -> dict[str, str]:
+    """`prepare_allocator`'s settings as glibc's environment variables: a process started with
+    them (one that does not call it, such as another project's script) gets the same allocator."""
+    return {name: str(value) for name, _, value in _malloc_settings(every_size)} | dict([_SET_BY_US])
+
+
+def _malloc_settings(every_size: bool) -> tuple[tuple[str, int, int], ...]:
+    return (*_MALLOC_SETTINGS, *(_MALLOC_EVERY_SIZE if every_size else ()))
 
 
 # --- CPU threads ---------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ import sys
 
 from c4d_core.config import add_training_arguments, training_config
 from c4d_core.errors import UserError
-from c4d_core.system import configure_threads
+from c4d_core.system import configure_threads, prepare_allocator
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
                  *(["--resume"] if args.resume else [])]
         return launch(args.nproc_per_node, child, verbose=getattr(args, "verbose", False))
     configure_threads(workers=cfg.data.num_workers, threads=cfg.threads)
+    prepare_allocator(every_size=True)  # each step reuses the last one's memory, large blocks too
     train(cfg, resume=args.resume)
     return 0
 
