@@ -5,7 +5,7 @@ Usage:
         [--loader-config PRESET --loader-set KEY=VALUE ...] [--clips 120] [--repeats 3]
         [--models tiny,cnn-only,full] [--clip T,H,W,N] [--batch B] [--iters I] [--set KEY=VALUE ...]
         [--before DIR] [--cotracker-step SCRIPT --cotracker-model online --cotracker-window S]
-        [--device cuda [--bf16]]
+        [--malloc-variants] [--device cuda [--bf16]]
 
 - Data: clips/s of the training pipeline (read, decode, clip choice, augmentation, track
   sampling, batching through a DataLoader) with each of `--workers` worker counts and with none
@@ -32,7 +32,9 @@ Usage:
   CoTracker3's code: it is run as `SCRIPT --inputs NPZ --model online|offline --window S --iters I
   --steps K [--device cuda] [--bf16]` and prints one JSON line with step_cpu_s, step_s,
   peak_rss_gib, base_rss_gib (after its imports) and peak_gpu_gib (None on the CPU);
-  docs/PERFORMANCE.md says what it computes. Models: `tiny` (`tiny-cpu`),
+  docs/PERFORMANCE.md says what it computes. DynPT's steps run with the allocator `c4d train`
+  sets (`prepare_allocator(every_size=True)`); `--malloc-variants` adds each model with glibc's
+  defaults (`+glibc`) and CoTracker3 with `c4d train`'s allocator (`+kept`). Models: `tiny` (`tiny-cpu`),
   `tiny-2x` (`tiny-cpu-2x`: the clip at twice its height and width), `cnn-only`
   (`paper-gpu-cnn-only`), `full` (`paper-gpu`, frozen ViT-L with random weights: no DUSt3R file
   is needed to time it) and the fine-tuning recipes `ft-mobility`, `ft-mobility-fusion`,

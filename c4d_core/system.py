@@ -98,11 +98,12 @@ def prepare_allocator(every_size: bool = False) -> bool:
     training (tiny-cpu-2x, batch 4), under 500 with these settings, and the step 0.87x the time
     (docs/perf/threads.md). Peak memory is unchanged; the process keeps it until it exits, as
     PyTorch's caching allocators do. `every_size` (`c4d train`) keeps blocks over 32 MiB too: at
-    the paper's clip scaled to this CPU (24x192x256, 192 tracks) the step faulted in ~19 GiB of
-    pages, 0.87x the CPU time with them kept, the same peak (docs/PERFORMANCE.md). Applied now
-    (mallopt) and, for child processes, through glibc's environment variables. Left alone where
-    the user chose an allocator or malloc settings (LD_PRELOAD, GLIBC_TUNABLES, a MALLOC_*_
-    variable) and off glibc."""
+    the paper's clip scaled to this CPU (24x192x256, 192 tracks) a step with glibc's defaults
+    faulted in ~19 GiB of pages; with every block kept it took 0.83x the CPU time (36.7 against
+    44.0 CPU-s) and 0.95x the peak (docs/PERFORMANCE.md). Applied now (mallopt) and, for child
+    processes, through glibc's environment variables (marked as ours, so that a child's own call
+    applies them again). Left alone where the user chose an allocator or malloc settings
+    (LD_PRELOAD, GLIBC_TUNABLES, a MALLOC_*_ variable) and off glibc."""
     if _USER_MALLOC:
         return False
     try:
