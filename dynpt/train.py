@@ -86,15 +86,21 @@ def accumulation_steps(total_batch: int, batch_size: int, world_size: int) -> in
 def check_schedule(tc, world_size: int) -> int:
     """Accumulation steps of the `train` section on `world_size` processes, or a UserError.
 
-    Under torchrun every process finds the same mistake: only rank 0 says it (one line), the
-    others exit with the same status and no message.
+    Under torchrun every process finds the same mistake: only rank 0 says it (one line). The
+    others wait for torchrun to stop them once rank 0 has exited (it stops every process at the
+    first failure; a rank that exited first could have had rank 0 stopped before it spoke), and
+    exit with the same status and no message if that does not come within `RANK_WAIT_S`.
     """
     try:
         return accumulation_steps(tc.total_batch, tc.batch_size, world_size)
     except UserError:
         if int(os.environ.get("RANK", "0")) > 0:
+            time.sleep(RANK_WAIT_S)
             raise SystemExit(2) from None
         raise
+
+
+RANK_WAIT_S = 60.0  # s; how long a rank > 0 waits for rank 0's report of a schedule mistake
 
 
 def rng_state() -> dict:
