@@ -83,10 +83,10 @@ _MALLOC_EVERY_SIZE = (
 )
 # Set beside the variables: a child process (`c4d demo`'s `c4d train`, torchrun's workers) that
 # finds them tells its parent's settings from the user's by it.
-_SET_BY_US = ("C4D_MALLOC", "prepare_allocator")
+_MARKER, _MARKER_VALUE = "C4D_MALLOC", "prepare_allocator"
 # The user chose an allocator or malloc settings before this process started.
 _USER_MALLOC = (bool(os.environ.get("LD_PRELOAD")) or "malloc" in os.environ.get("GLIBC_TUNABLES", "")
-                or (os.environ.get(_SET_BY_US[0]) != _SET_BY_US[1]
+                or (os.environ.get(_MARKER) != _MARKER_VALUE
                     and any(name in os.environ for name, _, _ in (*_MALLOC_SETTINGS, *_MALLOC_EVERY_SIZE))))
 
 
@@ -112,18 +112,17 @@ def prepare_allocator(every_size: bool = False) -> bool:
         mallopt = libc.mallopt
     except (OSError, AttributeError):
         return False
-    for name, param, value in _malloc_settings(every_size):
+    for _, param, value in _malloc_settings(every_size):
         if not mallopt(param, value):
             return False
-        os.environ[name] = str(value)
-    os.environ[_SET_BY_US[0]] = _SET_BY_US[1]
+    os.environ.update(allocator_environment(every_size))
     return True
 
 
 def allocator_environment(every_size: bool = False) -> dict[str, str]:
     """`prepare_allocator`'s settings as glibc's environment variables: a process started with
     them (one that does not call it, such as another project's script) gets the same allocator."""
-    return {name: str(value) for name, _, value in _malloc_settings(every_size)} | dict([_SET_BY_US])
+    return {name: str(value) for name, _, value in _malloc_settings(every_size)} | {_MARKER: _MARKER_VALUE}
 
 
 def _malloc_settings(every_size: bool) -> tuple[tuple[str, int, int], ...]:

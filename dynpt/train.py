@@ -83,6 +83,9 @@ def accumulation_steps(total_batch: int, batch_size: int, world_size: int) -> in
     return total_batch // per_pass
 
 
+RANK_WAIT_S = 60.0  # s; how long a rank > 0 waits for rank 0's report of a schedule mistake
+
+
 def check_schedule(tc, world_size: int) -> int:
     """Accumulation steps of the `train` section on `world_size` processes, or a UserError.
 
@@ -98,9 +101,6 @@ def check_schedule(tc, world_size: int) -> int:
             time.sleep(RANK_WAIT_S)
             raise SystemExit(2) from None
         raise
-
-
-RANK_WAIT_S = 60.0  # s; how long a rank > 0 waits for rank 0's report of a schedule mistake
 
 
 def rng_state() -> dict:
