@@ -25,12 +25,14 @@ import time
 import zlib
 
 import cv2
+import isal
 import numpy as np
+from isal import isal_zlib
 
 from c4d_core.config import load_config
 from c4d_core.system import require_egl
 from datagen.cli import usable_cpus
-from datagen.codecs import decode_array, encode_array
+from datagen.codecs import decode_array, encode_array, shuffled_npy
 from datagen.shards import decode_scene, encode_scene, list_shards
 
 
@@ -106,14 +108,17 @@ FLOAT_CODECS = {
     "npy + zlib 6": (lambda a: zlib.compress(_npy(a), 6), lambda d, a: _from_npy(zlib.decompress(d), a)),
     "npy + lzma 0": (lambda a: lzma.compress(_npy(a), preset=0), lambda d, a: _from_npy(lzma.decompress(d), a)),
     "npy + bz2 9": (lambda a: bz2.compress(_npy(a), 9), lambda d, a: _from_npy(bz2.decompress(d), a)),
-    "shuffle + zlib 1 (.npy.bsz, chosen)": (encode_array, lambda d, a: decode_array(d)),
+    "shuffle + ISA-L 1 (.npy.bsz, chosen)": (encode_array, lambda d, a: decode_array(d)),
+    "shuffle + zlib 1 (.npy.bsz until ISA-L)": (lambda a: zlib.compress(shuffled_npy(a), 1),
+                                                lambda d, a: decode_array(d)),
+    "shuffle + ISA-L 3": (lambda a: isal_zlib.compress(shuffled_npy(a), 3), lambda d, a: decode_array(d)),
     "shuffle + zlib 1 RLE strategy": (lambda a: _zlib_rle(_shuffled(a)), lambda d, a: _unshuffled(zlib.decompress(d), a)),
     "shuffle + zlib 6": (lambda a: zlib.compress(_shuffled(a), 6), lambda d, a: _unshuffled(zlib.decompress(d), a)),
     "shuffle + lzma 0": (lambda a: lzma.compress(_shuffled(a), preset=0), lambda d, a: _unshuffled(lzma.decompress(d), a)),
     "TIFF deflate + float predictor": _image(".tiff", [
         cv2.IMWRITE_TIFF_COMPRESSION, cv2.IMWRITE_TIFF_COMPRESSION_ADOBE_DEFLATE,
         cv2.IMWRITE_TIFF_PREDICTOR, cv2.IMWRITE_TIFF_PREDICTOR_FLOATINGPOINT]),
-    "float16 + shuffle + zlib 1 (lossy)": (lambda a: encode_array(a.astype(np.float16)),
+    "float16 + shuffle + ISA-L 1 (lossy)": (lambda a: encode_array(a.astype(np.float16)),
                                            lambda d, a: decode_array(d).astype(np.float32)),
 }
 RGB_CODECS = {
@@ -129,7 +134,7 @@ SEGMENTATION_CODECS = {
     "npy int32 (raw, baseline)": (_npy, _from_npy),
     "uint8 PNG level 1 (chosen)": (lambda a: _image(".png", [cv2.IMWRITE_PNG_COMPRESSION, 1])[0](a.astype(np.uint8)),
                                    lambda d, a: _image(".png", [])[1](d, a).astype(np.int32)),
-    "int32 shuffle + zlib 1 (.npy.bsz)": (encode_array, lambda d, a: decode_array(d)),
+    "int32 shuffle + ISA-L 1 (.npy.bsz)": (encode_array, lambda d, a: decode_array(d)),
 }
 
 
@@ -177,7 +182,9 @@ def measure_codecs(scene, repeats: int) -> None:
     flow_codecs = {k: v for k, v in FLOAT_CODECS.items() if not k.startswith("TIFF")}  # 2 channels
     rows += codec_rows("flow_fwd", scene.flow_fwd, flow_codecs, repeats)
     rows += codec_rows("segmentation", scene.segmentation, SEGMENTATION_CODECS, repeats)
-    small = {k: FLOAT_CODECS[k] for k in ("npy (raw, baseline)", "npy + zlib 1", "shuffle + zlib 1 (.npy.bsz, chosen)")}
+    small = {k: FLOAT_CODECS[k] for k in ("npy (raw, baseline)", "npy + zlib 1",
+                                          "shuffle + ISA-L 1 (.npy.bsz, chosen)",
+                                          "shuffle + zlib 1 (.npy.bsz until ISA-L)")}
     rows += codec_rows("tracks_world", scene.tracks_world, small, repeats)
     print("\n".join(rows))
     print("\n| what | size | time | throughput |\n|---|---|---|---|")
@@ -233,7 +240,8 @@ def main() -> None:
     cfg = load_config("datagen", args.preset, overrides=[f"resolution=[{args.size},{args.size}]",
                                                           f"frames={args.frames}"])
     print(f"machine: {usable_cpus()} usable cores, load average {os.getloadavg()[0]:.1f}; "
-          f"numpy {np.__version__}, OpenCV {cv2.__version__}, zlib {zlib.ZLIB_RUNTIME_VERSION}")
+          f"numpy {np.__version__}, OpenCV {cv2.__version__}, zlib {zlib.ZLIB_RUNTIME_VERSION}, "
+          f"isal {isal.__version__}")
     if not args.skip_codecs:
         measure_codecs(generate_scene(cfg, 0), args.repeats)
     if not args.skip_cli:

@@ -18,15 +18,14 @@ import io
 import json
 import os
 import tarfile
-import zlib
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Sequence
 
 from c4d_core.errors import UserError
 from c4d_core.files import disk_error, remove_quietly
-from datagen.codecs import (ARRAY_FIELDS, CHECKSUMS, FORMAT_1_RGB, REQUIRED_FIELDS, crc32,
-                            decode_array, decode_field, encode_field, member_suffix, to_json_bytes,
-                            wrong_layout)
+from datagen.codecs import (ARRAY_FIELDS, CHECKSUMS, DECODE_ERRORS, FORMAT_1_RGB, REQUIRED_FIELDS,
+                            crc32, decode_array, decode_field, encode_field, member_suffix,
+                            to_json_bytes, wrong_layout)
 from datagen.jobs import SHARD_PATTERN, config_digest
 from datagen.scene import Scene
 
@@ -161,7 +160,7 @@ def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) ->
                 values[name] = None
             else:
                 values[name] = decode_field(name, suffix, data, num_frames)
-    except (ValueError, TypeError, zlib.error, UnicodeDecodeError) as exc:
+    except DECODE_ERRORS as exc:
         raise UserError(f"scene {key!r}{where}: member {suffix!r} is corrupt ({exc}); {REGENERATE}"
                         ) from exc
     return Scene(**values)
@@ -334,7 +333,7 @@ def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iter
                     "end-of-archive marker follows, so what came after it is lost; delete it "
                     "and rerun `c4d datagen`"
                 )
-    except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
+    except (tarfile.TarError, EOFError, OSError) as exc:
         where = f"at member {name!r}" if name else "at its start"
         error = UserError(
             f"shard {shard} is corrupt or truncated {where} (scene "

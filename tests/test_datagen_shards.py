@@ -2,6 +2,7 @@
 
 import json
 import tarfile
+import zlib
 
 import cv2
 import numpy as np
@@ -9,8 +10,8 @@ import pytest
 
 from c4d_core.errors import UserError
 from datagen import Scene, read_scenes
-from datagen.codecs import (ARRAY_FIELDS, JSON_FIELDS, QUANTISED, RECORD_FIELDS, decode_array,
-                            dequantise, encode_array, quantise)
+from datagen.codecs import (ARRAY_FIELDS, DECODE_ERRORS, JSON_FIELDS, QUANTISED, RECORD_FIELDS,
+                            decode_array, dequantise, encode_array, quantise)
 from datagen.scene import EVENT_KEYS
 from datagen.jobs import ShardPlan, resolve_task
 from datagen.shards import (
@@ -98,6 +99,26 @@ def test_array_codec_is_exact_for_every_dtype_and_special_values():
         out = decode_array(encode_array(array))
         assert out.dtype == array.dtype and out.shape == array.shape
         assert out.tobytes() == array.tobytes()  # same bits, NaN and -0.0 included
+
+
+def test_array_members_are_plain_zlib_streams_both_ways():
+    """`.npy.bsz` is written by ISA-L's deflate, but the format is a zlib stream: Python's zlib
+    (FORMAT.md's reader) reads what we write, and members written by zlib (shards made before
+    ISA-L) decode to the same array."""
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(1, 30, (4, 16, 16)).astype(np.float32)
+    depth[:, :8] = 40.0  # runs, as the backdrop gives
+    member = encode_array(depth)
+    raw = zlib.decompress(member)  # the .npy v1 header, then the byte planes
+    header = raw[:len(raw) - depth.nbytes]
+    assert header.startswith(b"\x93NUMPY\x01\x00")
+    planes = np.frombuffer(raw[len(header):], np.uint8).reshape(4, -1)  # (itemsize, n)
+    assert planes.T.tobytes() == depth.tobytes()
+    by_zlib = zlib.compress(raw, 1)
+    assert by_zlib != member  # another deflate, another stream
+    assert decode_array(by_zlib).tobytes() == depth.tobytes()
+    with pytest.raises(DECODE_ERRORS):
+        decode_array(member[:-7])  # truncated
 
 
 def test_every_field_round_trips_exactly(tmp_path):
@@ -221,6 +242,9 @@ def test_corrupt_member_names_shard_and_scene(tmp_path):
     sample["depth.npy.bsz"] = sample["depth.npy.bsz"][:-20] + bytes(20)
     with pytest.raises(UserError, match=r"train-00000007.*rgb\.npy"):
         decode_scene({**sample, "rgb.npy": sample["rgb.npy"][:-3]})
+    without_checksums = {k: v for k, v in sample.items() if k != "checksums.json"}  # format 2
+    with pytest.raises(UserError, match=r"train-00000007.*depth\.npy\.bsz.* is corrupt"):
+        decode_scene(without_checksums)  # the inflate's own error, as one line
     write_shard_path = tmp_path / "train-000000.tar"
     with ShardWriter(write_shard_path) as writer:
         writer.write(sample)
