@@ -42,10 +42,11 @@ def scene_rngs(seed: int, scene_index: int) -> dict[str, np.random.Generator]:
 # The parts of a scene's cost that `generate_scene(timings=...)` reports, in CPU seconds of the
 # process (all threads, Mesa's rasterizer included): drawing the description, physics, building
 # the renderer (meshes, procedural textures, upload), the lit pass (with its shadow maps and
-# motion-blur sub-frames), the label pass (depth, segmentation), the surface pass (normals,
-# object coordinates), optical flow, point tracks, and the instance and event records.
-PARTS = ("sample", "physics", "render_setup", "render_rgb", "render_labels", "render_surface",
-         "flow", "tracks", "instances", "events")
+# motion-blur sub-frames), the label pass (depth, segmentation, and the normals and object
+# coordinates when those layers are on), optical flow, point tracks, and the instance and event
+# records.
+PARTS = ("sample", "physics", "render_setup", "render_rgb", "render_labels", "flow", "tracks",
+         "instances", "events")
 
 
 class _Clock:
@@ -102,12 +103,11 @@ def generate_scene(cfg, scene_index: int, assets: AssetLibrary | None = None,
     num_samples = render.num_blur_samples(description.motion_blur, cfg)
     clock.lap("render_setup")
     for t in range(num_frames):
-        depth[t], segmentation[t] = renderer.render_labels(object_to_world[:, t], cam_to_world[t])
-        clock.lap("render_labels")
+        depth[t], segmentation[t], frame_normal, frame_coordinates = renderer.render_labels(
+            object_to_world[:, t], cam_to_world[t], surface=surface)
         if surface:
-            normal[t], coordinates[t] = renderer.render_surface(object_to_world[:, t],
-                                                                cam_to_world[t])
-            clock.lap("render_surface")
+            normal[t], coordinates[t] = frame_normal, frame_coordinates
+        clock.lap("render_labels")
         if num_samples == 1:
             rgb[t] = renderer.render_rgb(object_to_world[:, t], cam_to_world[t])
         else:

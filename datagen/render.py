@@ -73,7 +73,8 @@ def _shader_cache_class():
                 fragment_shader = str(SHADER_DIR / "mesh.frag")
                 defines = {**(defines or {}), "NUM_DIRECTIONAL_LIGHTS": self.light_counts[0],
                            "NUM_POINT_LIGHTS": self.light_counts[1]}
-            elif fragment_shader == "flat.frag":  # pyrender's FLAT pass, unused: the surface pass
+            elif fragment_shader == "flat.frag":  # pyrender's FLAT pass, unused: the label pass
+                # with the surface layers
                 vertex_shader = str(SHADER_DIR / "surface.vert")
                 fragment_shader = str(SHADER_DIR / "surface.frag")
             return super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
@@ -158,7 +159,7 @@ _LABEL_TARGET: dict = {}  # the process's label framebuffer: size, framebuffer, 
 
 
 def _label_target(width: int, height: int) -> int:
-    """The single-sampled framebuffer of the label and surface passes at (height, width):
+    """The single-sampled framebuffer of the label pass at (height, width):
     colour attachment 0 RGBA8 (segment colours), 1 and 2 float32 RGBA (normals, object
     coordinates) and a 24-bit depth buffer like pyrender's. One per process (in its one EGL
     context), made again when the size changes. (pyrender draws labels into its 4x multisampled
@@ -359,7 +360,7 @@ class SceneRenderer:
         self.scene = pyrender.Scene(ambient_light=np.full(3, description.ambient),
                                     bg_color=np.zeros(4))
         self.object_nodes = []
-        self.boxes = {}  # node -> (box_min, box_scale) of the surface pass (object coordinates)
+        self.boxes = {}  # node -> (box_min, box_scale) of the object coordinates (label pass)
         for index in object_indices:
             spec = description.objects[index]
             asset = assets.get(spec.asset_id)
@@ -606,21 +607,42 @@ class SceneRenderer:
         color = np.frombuffer(data, np.uint8).reshape(height, width, 3)
         return np.ascontiguousarray(color[::-1])  # OpenGL's rows run bottom-up
 
-    def render_labels(self, object_to_world: np.ndarray, cam_to_world: np.ndarray):
-        """z-depth float32 (H,W) and segmentation int32 (H,W) at the pixel centres."""
+    def render_labels(self, object_to_world: np.ndarray, cam_to_world: np.ndarray,
+                      surface: bool = False):
+        """(depth, segmentation, normal, coordinates) at the pixel centres: z-depth float32 (H,W),
+        segmentation int32 (H,W) and, with `surface`, world-space unit shading normals float32
+        (H,W,3) and object coordinates float32 (H,W,3) in [0,1]^3 (0 on the backdrop), else None
+        and None.
+
+        One pass either way. Without `surface` it draws with pyrender's segmentation program;
+        with it, with datagen's surface program (shaders/surface.*), which computes the clip
+        position by the segmentation program's expression and writes the same segment colour,
+        so depth and segmentation are the same bits, and the normals and coordinates cover
+        exactly their pixels. object_to_world (K,4,4), cam_to_world (4,4) OpenCV.
+        """
         from OpenGL import GL as gl
 
         pyrender = _pyrender()
         self._set_poses(object_to_world, cam_to_world)
-        flags = pyrender.RenderFlags.SEG
-        renderer = self._begin(flags)
-        _begin_label_target(self.width, self.height, [gl.GL_COLOR_ATTACHMENT0])
+        renderer = self._begin(pyrender.RenderFlags.SEG)
+        outputs = [gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1, gl.GL_COLOR_ATTACHMENT2]
+        _begin_label_target(self.width, self.height, outputs if surface else outputs[:1])
         V, P = renderer._get_camera_matrices(self.scene)
+
+        def segment_and_box(program, node, primitive):  # a uniform a program lacks is skipped
+            _set_uniform(program, "color", self.seg_colors[node] / 255.0)
+            low, scale = self.boxes[node]
+            _set_uniform(program, "box_min", low)
+            _set_uniform(program, "box_scale", scale)
+
         self._opaque_state()
-        self._pass(renderer, self.draw_order, flags,
-                   pyrender.constants.ProgramFlags.USE_MATERIAL, V, P,
-                   per_primitive=lambda program, node, primitive: _set_uniform(
-                       program, "color", self.seg_colors[node] / 255.0))
+        if surface:  # pyrender's FLAT program, served by shaders/surface.* (DatagenShaders)
+            flags, program_flags = pyrender.RenderFlags.FLAT, pyrender.constants.ProgramFlags.NONE
+        else:
+            flags, program_flags = (pyrender.RenderFlags.SEG,
+                                    pyrender.constants.ProgramFlags.USE_MATERIAL)
+        self._pass(renderer, self.draw_order, flags, program_flags, V, P,
+                   per_primitive=segment_and_box)
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
         gl.glReadBuffer(gl.GL_COLOR_ATTACHMENT0)
         data = gl.glReadPixels(0, 0, self.width, self.height, gl.GL_RGB, gl.GL_UNSIGNED_BYTE)
@@ -629,36 +651,12 @@ class SceneRenderer:
         data = gl.glReadPixels(0, 0, self.width, self.height, gl.GL_DEPTH_COMPONENT, gl.GL_FLOAT)
         window = np.frombuffer(data, np.float32).reshape(self.height, self.width)[::-1]
         camera = self.scene.main_camera_node.camera
-        return linear_depth(window, camera.znear, camera.zfar), segmentation
-
-    def render_surface(self, object_to_world: np.ndarray,
-                       cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World-space unit shading normals float32 (H,W,3) and object coordinates float32
-        (H,W,3) in [0,1]^3 (0 on the backdrop) at the pixel centres, covering exactly the pixels
-        of `render_labels` (same clip positions, depth test, culling and draw order).
-
-        object_to_world (K,4,4), cam_to_world (4,4) OpenCV.
-        """
-        from OpenGL import GL as gl
-
-        pyrender = _pyrender()
-        self._set_poses(object_to_world, cam_to_world)
-        renderer = self._begin(pyrender.RenderFlags.SEG)  # the label pass's context
-        _begin_label_target(self.width, self.height,
-                            [gl.GL_COLOR_ATTACHMENT1, gl.GL_COLOR_ATTACHMENT2])
-        V, P = renderer._get_camera_matrices(self.scene)
-
-        def box(program, node, primitive):
-            low, scale = self.boxes[node]
-            _set_uniform(program, "box_min", low)
-            _set_uniform(program, "box_scale", scale)
-
-        self._opaque_state()
-        self._pass(renderer, self.draw_order, pyrender.RenderFlags.FLAT,
-                   pyrender.constants.ProgramFlags.NONE, V, P, per_primitive=box)
-        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, _label_target(self.width, self.height))
-        return (_read_float_rgb(gl.GL_COLOR_ATTACHMENT1, self.width, self.height),
-                _read_float_rgb(gl.GL_COLOR_ATTACHMENT2, self.width, self.height))
+        depth = linear_depth(window, camera.znear, camera.zfar)
+        if not surface:
+            return depth, segmentation, None, None
+        normal, coordinates = (_read_float_rgb(attachment, self.width, self.height)
+                               for attachment in outputs[1:])
+        return depth, segmentation, normal, coordinates
 
 
 def shutter_times(frame: int, shutter: float, num_samples: int) -> np.ndarray:

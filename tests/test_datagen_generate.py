@@ -227,7 +227,7 @@ def test_movi_f_blur_is_the_mean_of_sub_frame_renders(assets):
     sharp = renderer.render_rgb(*at_frame)
     assert np.abs(sharp.astype(int) - scene.rgb[t]).max() > 20  # blur is visible
     # Labels stay sharp, at the frame time.
-    depth, segmentation = renderer.render_labels(*at_frame)
+    depth, segmentation, _, _ = renderer.render_labels(*at_frame)
     np.testing.assert_array_equal(depth, scene.depth[t])
     np.testing.assert_array_equal(segmentation, scene.segmentation[t])
 

@@ -1,7 +1,8 @@
 #version 330 core
-// datagen's surface pass for pyrender: world-space shading normal and object-frame position per
-// fragment. The clip position is computed exactly as pyrender's segmentation pass computes it
-// (same expression), so both passes cover the same pixels.
+// datagen's label pass with the surface layers, for pyrender: world-space shading normal and
+// object-frame position per fragment. The clip position is computed exactly as pyrender's
+// segmentation program computes it (same expression), so the depth and the pixels are those of
+// the label pass without the surface layers.
 
 layout(location = 0) in vec3 position;
 #ifdef NORMAL_LOC
