@@ -8,8 +8,8 @@ and docs/perf/datagen_io.md):
   frames stacked vertically in one PNG, which is still read).
 - `segmentation.png`: (T*H, W) 8-bit PNG (16-bit when an id exceeds 255), decoded to int32.
 - every other array: `<field>.npy.bsz`, lossless for any dtype (see `encode_array`): a zlib stream
-  (RFC 1950) that any inflate reads, written and read with ISA-L's deflate (`isal`), which encodes
-  ~11x and decodes ~1.8x faster than zlib's at level 1 (docs/perf/datagen_io.md).
+  (RFC 1950) that any inflate reads, written and read with ISA-L's deflate (`isal`): a scene's
+  members encode 5.5x and decode 1.4x faster than with zlib's level 1 (docs/perf/datagen_io.md).
 - `normal.u16.npy.bsz`, `object_coordinates.u16.npy.bsz`: float32 (T,H,W,3) quantised to uint16
   as Kubric's PNGs are (`QUANTISED`; error at most half a step), then `.npy.bsz`.
 - `instances.npy.bsz`: the dict of per-object arrays as one structured array, one record per
@@ -34,8 +34,9 @@ from c4d_core.files import json_default
 from datagen.scene import EVENT_KEYS, INSTANCE_KEYS, event_columns, events_from_columns
 
 FORMAT_VERSION = 3  # 3: a `checksums.json` member; 2: rgb as raw `rgb.npy` (~50x faster than PNG)
-# ISA-L's deflate level (0-3) of `.npy.bsz`: level 1 stores depth and flow within 2 % of zlib's
-# level 1 at 11x its encode speed; level 3 is 2x slower and no smaller here (docs/perf)
+# ISA-L's deflate level (0-3) of `.npy.bsz`: level 1 encodes depth and flow 5-10x faster than
+# zlib's level 1, 0-11 % larger per field (1-7 % per scene); its level 3 is 2x slower and no
+# smaller (docs/perf/datagen_io.md)
 DEFLATE_LEVEL = 1
 # What decoding a corrupt member raises (`decode_field`, `decode_array`).
 DECODE_ERRORS = (ValueError, TypeError, isal_zlib.error, UnicodeDecodeError)
