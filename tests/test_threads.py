@@ -179,7 +179,8 @@ def test_kept_memory_ends_the_page_faults_of_repeated_training_steps(tmp_path):
     left alone."""
     (off, default), (on, kept) = _faults_per_step(tmp_path, "off"), _faults_per_step(tmp_path, "kept")
     assert (off, on) == ("off", "True")
-    assert default > 1000 and kept * 10 < default, (default, kept)
+    # Measured: 1,900-20,000 against 60-200 faults a step, as threads and the load vary.
+    assert default > 1000 and kept * 5 < default, (default, kept)
     assert _faults_per_step(tmp_path, "kept", MALLOC_TOP_PAD_="0")[0] == "False"
     assert _faults_per_step(tmp_path, "every", MALLOC_MMAP_MAX_="0")[0] == "False"
 
