@@ -9,10 +9,11 @@ worker; CPU seconds per scene against other commits, and the cost of the optiona
 For each preset: one warm-up scene (EGL context, first asset loads), then the median over
 `--scenes` scenes of the CPU seconds (all threads, Mesa's rasterizer included) of each part of
 `generate_scene` (`datagen.generate.PARTS`: sample, physics, render setup, the lit pass, the label
-pass (with the normals and object coordinates when on), flow, tracks, instances, events) and of encoding the scene into its shard members
-(`datagen.shards.encode_scene`), with the whole scene's CPU and wall seconds. `--all-layers`
-turns every optional layer on (`layers.*=true`). The lit pass is also timed through pyrender's
-own renderer with its stock PBR shaders, the baseline for datagen's shaders and draw loop. With
+pass (with the normals and object coordinates when on), flow, tracks, instances, events) and of
+encoding the scene into its shard members (`datagen.shards.encode_scene`), with the whole
+scene's CPU and wall seconds. `--all-layers` turns every optional layer on (`layers.*=true`).
+The lit pass is also timed through pyrender's own renderer with its stock PBR shaders, the
+baseline for datagen's shaders and draw loop. With
 `--workers` > 0, that many processes generate scenes in parallel to give scenes per hour with
 all cores.
 

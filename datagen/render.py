@@ -629,11 +629,12 @@ class SceneRenderer:
         _begin_label_target(self.width, self.height, outputs if surface else outputs[:1])
         V, P = renderer._get_camera_matrices(self.scene)
 
-        def segment_and_box(program, node, primitive):  # a uniform a program lacks is skipped
+        def segment_and_box(program, node, primitive):
             _set_uniform(program, "color", self.seg_colors[node] / 255.0)
-            low, scale = self.boxes[node]
-            _set_uniform(program, "box_min", low)
-            _set_uniform(program, "box_scale", scale)
+            if surface:
+                low, scale = self.boxes[node]
+                _set_uniform(program, "box_min", low)
+                _set_uniform(program, "box_scale", scale)
 
         self._opaque_state()
         if surface:  # pyrender's FLAT program, served by shaders/surface.* (DatagenShaders)
