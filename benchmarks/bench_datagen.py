@@ -13,9 +13,8 @@ pass (with the normals and object coordinates when on), flow, tracks, instances,
 encoding the scene into its shard members (`datagen.shards.encode_scene`), with the whole
 scene's CPU and wall seconds. `--all-layers` turns every optional layer on (`layers.*=true`).
 The lit pass is also timed through pyrender's own renderer with its stock PBR shaders, the
-baseline for datagen's shaders and draw loop. With
-`--workers` > 0, that many processes generate scenes in parallel to give scenes per hour with
-all cores.
+baseline for datagen's shaders and draw loop. With `--workers` > 0, that many processes generate
+scenes in parallel to give scenes per hour with all cores.
 
 `--against TREE...`: source trees of other commits (`git archive REV | tar -x -C TREE`, plus a
 link `TREE/c4d_configs -> configs` for trees whose presets are installed as that package). Each
