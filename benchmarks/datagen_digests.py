@@ -34,18 +34,16 @@ SCENES = {
 
 
 def scene_arrays(scene) -> dict[str, np.ndarray]:
-    """Every array of a Scene by name (instances per key, events as their columns)."""
-    from datagen.scene import Scene, event_columns
+    """Every array of a Scene by name (instances and events per key)."""
+    from datagen.scene import Scene
 
     arrays = {}
     for name in Scene.field_names():
         value = getattr(scene, name)
         if isinstance(value, np.ndarray):
             arrays[name] = value
-        elif name == "instances" and value is not None:
-            arrays.update({f"instances.{key}": v for key, v in value.items()})
-        elif name == "events" and value is not None:
-            arrays.update({f"events.{key}": v for key, v in event_columns(value).items()})
+        elif name in ("instances", "events") and value is not None:
+            arrays.update({f"{name}.{key}": v for key, v in value.items()})
     return arrays
 
 

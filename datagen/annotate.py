@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c4d_core import geometry
-from datagen.scene import INSTANCE_KEYS, events_from_columns
+from datagen.scene import EVENT_KEYS, INSTANCE_KEYS
 
 
 def segment_poses(object_to_world: np.ndarray) -> np.ndarray:
@@ -306,18 +306,20 @@ def instance_labels(segmentation, intrinsics, cam_to_world, object_to_world, box
 
 
 def collision_events(contacts: np.ndarray, steps_per_frame: int, intrinsics: np.ndarray,
-                     camera_pose_at) -> list[dict]:
-    """`Scene.events` from pybullet contacts (`datagen.simulate.CONTACT_DTYPE`, (E,)).
+                     camera_pose_at) -> dict[str, np.ndarray]:
+    """`Scene.events` (keys and dtypes of `EVENT_KEYS`, (E,...) each) from pybullet contacts
+    (`datagen.simulate.CONTACT_DTYPE`, (E,)).
 
-    Each event holds the keys of `EVENT_KEYS`, its values float32-exact Python numbers and lists:
-    the two instances (object indices, -1 the floor), the frame time (step / steps_per_frame - 1,
-    a float), the normal force (N), the contact point on the second instance (world), its (x, y)
-    pixel in the camera at that time (intrinsics (3,3); camera_pose_at(times (E,)) -> (E,4,4))
-    and the contact normal on the second instance, pointing to the first (world).
+    Per event: the two instances (object indices, -1 the floor), the frame time
+    (step / steps_per_frame - 1), the normal force (N), the contact point on the second instance
+    (world), its (x, y) pixel in the camera at that time (intrinsics (3,3);
+    camera_pose_at(times (E,)) -> (E,4,4)) and the contact normal on the second instance,
+    pointing to the first (world).
     """
     frame = contacts["step"] / steps_per_frame - 1.0  # (E,)
     pixels, _ = geometry.project(contacts["position"], intrinsics, camera_pose_at(frame))
-    return events_from_columns({
-        "instances": contacts["bodies"], "frame": frame, "force": contacts["force"],
-        "position": contacts["position"], "image_position": pixels,
-        "contact_normal": contacts["normal"]})
+    values = {"instances": contacts["bodies"], "frame": frame, "force": contacts["force"],
+              "position": contacts["position"], "image_position": pixels,
+              "contact_normal": contacts["normal"]}
+    return {key: np.ascontiguousarray(values[key], dtype).reshape((len(contacts),) + shape)
+            for key, (dtype, shape) in EVENT_KEYS.items()}

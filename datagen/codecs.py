@@ -13,8 +13,8 @@ and docs/perf/datagen_io.md):
 - `normal.u16.npy.bsz`, `object_coordinates.u16.npy.bsz`: float32 (T,H,W,3) quantised to uint16
   as Kubric's PNGs are (`QUANTISED`; error at most half a step), then `.npy.bsz`.
 - `instances.npy.bsz`: the dict of per-object arrays as one structured array, one record per
-  object (`instance_dtype`); `events.npy.bsz`: the list of events as one record per event
-  (`EVENT_DTYPE`); both `.npy.bsz`, lossless.
+  object (`instance_dtype`); `events.npy.bsz`: the dict of per-event arrays as one record per
+  event (`EVENT_DTYPE`); both `.npy.bsz`, lossless.
 - `meta.json`, `objects.json`: UTF-8 JSON.
 - `checksums.json` (format 3): the CRC-32 of every other member of the sample, checked on read.
 A field that is `None` has no member and decodes to `None`.
@@ -31,7 +31,7 @@ import numpy as np
 from isal import isal_zlib
 
 from c4d_core.files import json_default
-from datagen.scene import EVENT_KEYS, INSTANCE_KEYS, event_columns, events_from_columns
+from datagen.scene import EVENT_KEYS, INSTANCE_KEYS
 
 FORMAT_VERSION = 3  # 3: a `checksums.json` member; 2: rgb as raw `rgb.npy` (~50x faster than PNG)
 # ISA-L's deflate level (0-3) of `.npy.bsz`: level 1 encodes depth and flow 5-10x faster than
@@ -63,7 +63,7 @@ ARRAY_FIELDS: dict[str, tuple[np.dtype, int]] = {
     "object_coordinates": (np.dtype(np.float32), 4),
 }
 JSON_FIELDS = ("meta", "objects")
-RECORD_FIELDS = ("instances", "events")  # a dict of arrays, a list of dicts: structured arrays
+RECORD_FIELDS = ("instances", "events")  # dicts of arrays, stored as structured arrays
 # field -> (low, high): stored as uint16 q = round((v - low) / (high - low) * 65535), read back as
 # low + q / 65535 * (high - low) in float32 (Kubric's normal and object-coordinate PNGs).
 QUANTISED = {"normal": (-1.0, 1.0), "object_coordinates": (0.0, 1.0)}
@@ -134,7 +134,8 @@ def decode_field(name: str, suffix: str, data: bytes, num_frames: int) -> Any:
         records = decode_array(data)
         return {key: np.ascontiguousarray(records[key]) for key in INSTANCE_KEYS}
     if name == "events":
-        return events_from_columns(decode_array(data))
+        records = decode_array(data)
+        return {key: np.ascontiguousarray(records[key]) for key in EVENT_KEYS}
     return decode_array(data)
 
 
@@ -165,25 +166,39 @@ def instance_dtype(num_frames: int) -> np.dtype:
 def instance_records(instances: dict[str, np.ndarray]) -> np.ndarray:
     """`Scene.instances` (K objects) -> a structured (K,) array of `instance_dtype`; ValueError
     if the keys, dtypes or shapes are not the contract's."""
-    if set(instances) != set(INSTANCE_KEYS):
-        raise ValueError(f"instances must have the keys {list(INSTANCE_KEYS)}, got {list(instances)}")
-    num_objects, num_frames = np.shape(instances["visible_pixels"])
-    records = np.zeros(num_objects, instance_dtype(num_frames))
-    for key, (dtype, shape) in INSTANCE_KEYS.items():
-        want = (num_objects,) if shape is None else (num_objects, num_frames, *shape)
-        value = instances[key]
-        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != want:
-            raise ValueError(f"instances[{key!r}] must be {dtype} {want}, got "
+    _require_dict("instances", instances)
+    shape = np.shape(instances.get("visible_pixels"))
+    num_objects, num_frames = shape if len(shape) == 2 else (0, 0)
+    return _records("instances", instances, INSTANCE_KEYS, (num_objects, num_frames),
+                    instance_dtype(num_frames))
+
+
+def event_records(events: dict[str, np.ndarray]) -> np.ndarray:
+    """`Scene.events` (E events) -> a structured (E,) array of `EVENT_DTYPE`; ValueError if the
+    keys, dtypes or shapes are not the contract's."""
+    _require_dict("events", events)
+    return _records("events", events, EVENT_KEYS, np.shape(events.get("frame"))[:1] or (0,),
+                    EVENT_DTYPE)
+
+
+def _require_dict(name: str, values: Any) -> None:
+    if not isinstance(values, dict):
+        raise ValueError(f"{name} must be a dict of arrays, got {type(values).__name__}")
+
+
+def _records(name: str, values: dict[str, np.ndarray], keys: dict, leading: tuple[int, ...],
+             dtype: np.dtype) -> np.ndarray:
+    """A dict of arrays -> a structured (leading[0],) array of `dtype`, one field per key of
+    `keys` (key -> (dtype, shape after the `leading` axes; None: one value per record))."""
+    if set(values) != set(keys):
+        raise ValueError(f"{name} must have the keys {list(keys)}, got {list(values)}")
+    records = np.zeros(leading[0], dtype)
+    for key, (want_dtype, shape) in keys.items():
+        want = leading[:1] if shape is None else (*leading, *shape)
+        value = values[key]
+        if not isinstance(value, np.ndarray) or value.dtype != want_dtype or value.shape != want:
+            raise ValueError(f"{name}[{key!r}] must be {want_dtype} {want}, got "
                              f"{getattr(value, 'dtype', type(value).__name__)} {np.shape(value)}")
-        records[key] = value
-    return records
-
-
-def event_records(events: list[dict[str, Any]]) -> np.ndarray:
-    """`Scene.events` -> a structured (E,) array of `EVENT_DTYPE`."""
-    columns = event_columns(events)
-    records = np.zeros(len(events), EVENT_DTYPE)
-    for key, value in columns.items():
         records[key] = value
     return records
 

@@ -26,7 +26,7 @@ INSTANCE_KEYS: dict[str, tuple[np.dtype, tuple[int, ...] | None]] = {
     "angular_velocity": (np.dtype(np.float32), (3,)),  # world, rad/s (pybullet's)
     "is_dynamic": (np.dtype(np.bool_), None),  # tossed (True) or a static distractor
 }
-# One collision event of `Scene.events`: key -> (dtype, shape of its value).
+# `Scene.events`, one row per collision: key -> (dtype, shape after the (E,) axis).
 EVENT_KEYS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
     "instances": (np.dtype(np.int32), (2,)),  # indices into `objects`, -1: the floor
     "frame": (np.dtype(np.float32), ()),  # time in frames (frame f at f; -1 = the toss)
@@ -35,19 +35,6 @@ EVENT_KEYS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
     "image_position": (np.dtype(np.float32), (2,)),  # (x, y) pixels at the event's time
     "contact_normal": (np.dtype(np.float32), (3,)),  # world unit normal, second -> first
 }
-
-
-def event_columns(events: list[dict[str, Any]]) -> dict[str, np.ndarray]:
-    """Events as one array per key of `EVENT_KEYS`, (E,) + its shape, in its dtype."""
-    return {key: np.array([e[key] for e in events], dtype).reshape((len(events),) + shape)
-            for key, (dtype, shape) in EVENT_KEYS.items()}
-
-
-def events_from_columns(columns: dict[str, np.ndarray]) -> list[dict[str, Any]]:
-    """Inverse of `event_columns`: one dict per event of Python numbers and lists, each value
-    exactly its key's dtype (floats are float32 values), so the list round-trips unchanged."""
-    lists = {key: np.asarray(columns[key], dtype).tolist() for key, (dtype, _) in EVENT_KEYS.items()}
-    return [dict(zip(lists, row)) for row in zip(*lists.values())]
 
 
 @dataclass
@@ -72,7 +59,7 @@ class Scene:
     normal: np.ndarray | None = None  # float32 (T,H,W,3) world-space unit shading normals
     object_coordinates: np.ndarray | None = None  # float32 (T,H,W,3) in [0,1]^3, 0 on background
     instances: dict[str, np.ndarray] | None = None  # INSTANCE_KEYS arrays, objects in `objects` order
-    events: list[dict[str, Any]] | None = None  # collisions, each with the keys of EVENT_KEYS
+    events: dict[str, np.ndarray] | None = None  # EVENT_KEYS arrays (E,...), one row per collision
     meta: dict[str, Any] = field(default_factory=dict)  # preset, seed, index, fps, version, ...
 
     @property

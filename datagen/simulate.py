@@ -91,12 +91,20 @@ def _place(client: int, body: int, candidates: np.ndarray, others: list[int]) ->
     return False
 
 
-def _max_speed(client: int, bodies: list[int]) -> float:
-    speeds = [0.0]
-    for body in bodies:
-        linear, angular = pb.getBaseVelocity(body, physicsClientId=client)
-        speeds += [float(np.linalg.norm(linear)), float(np.linalg.norm(angular))]
-    return max(speeds)
+def _all_slower(client: int, bodies: list[int], speed: float) -> bool:
+    """Whether every body's linear (units/s) and angular (rad/s) speed is below `speed`.
+
+    The norms are taken at once; any within rounding of `speed` is taken again alone, as
+    `np.linalg.norm` of one vector (BLAS's dot, which can round the last bit differently), so
+    the answer is the same as norming each vector on its own.
+    """
+    velocities = np.array([pb.getBaseVelocity(body, physicsClientId=client) for body in bodies],
+                          np.float64).reshape(-1, 3)  # (2B,3) linear and angular per body
+    norms = np.linalg.norm(velocities, axis=-1)  # (2B,)
+    near = np.abs(norms - speed) <= 1e-9 * abs(speed)
+    if near.any():
+        norms[near] = [np.linalg.norm(v) for v in velocities[near]]
+    return bool(np.max(norms, initial=0.0) < speed)
 
 
 def _settle(client: int, bodies: list[int], max_frames: int, steps_per_frame: int,
@@ -107,7 +115,7 @@ def _settle(client: int, bodies: list[int], max_frames: int, steps_per_frame: in
     for frame in range(max_frames):
         for _ in range(steps_per_frame):
             pb.stepSimulation(physicsClientId=client)
-        still = still + 1 if _max_speed(client, bodies) < speed else 0
+        still = still + 1 if _all_slower(client, bodies, speed) else 0
         if still == hold_frames:
             return (frame + 1) * steps_per_frame
     return max_frames * steps_per_frame

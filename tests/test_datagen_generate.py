@@ -187,11 +187,10 @@ def scene_digest(scene: Scene) -> str:
     digest = hashlib.sha1()
     for name in Scene.field_names():
         value = getattr(scene, name)
-        for array in (value.values() if isinstance(value, dict) and name == "instances"
+        for array in (value.values() if isinstance(value, dict) and name in ("instances", "events")
                       else [value]):
             if isinstance(array, np.ndarray):
                 digest.update(array.tobytes())
-    digest.update(repr(scene.events).encode())
     return digest.hexdigest()
 
 

@@ -18,6 +18,7 @@ from datagen import annotate
 from datagen.assets import load_asset_library
 from datagen.generate import describe_and_simulate, generate_scene
 from datagen.shards import decode_scene, encode_scene
+from datagen.scene import EVENT_KEYS
 
 SIZE = ["resolution=[96,96]", "frames=6", "tracks.num_points=64"]
 ALL_LAYERS = ["layers.normal=true", "layers.object_coordinates=true", "layers.instances=true",
@@ -212,8 +213,10 @@ def test_collision_points_lie_on_both_bodies(scene, assets, sim):
     the solver's penetration, on the first's, at the poses of its physics step."""
     description, simulation = sim
     events = scene.events
-    assert len(events) > 100 and {e["instances"][1] for e in events} >= {-1}
-    assert any(min(e["instances"]) >= 0 for e in events)  # object-object contacts too
+    instances, frames, positions = events["instances"], events["frame"], events["position"]
+    assert len(frames) > 100 and -1 in instances[:, 1]
+    assert (instances.min(axis=1) >= 0).any()  # object-object contacts too
+    assert {key: (v.dtype, v.shape[1:]) for key, v in events.items()} == EVENT_KEYS
     hulls = [ConvexHull(assets.get(description.objects[i].asset_id).hull_vertices
                         * description.objects[i].scale).equations for i in simulation.placed]
 
@@ -228,23 +231,22 @@ def test_collision_points_lie_on_both_bodies(scene, assets, sim):
 
     steps = simulation.steps_per_frame
     on_second, on_first = [], []
-    for event in events[:: max(1, len(events) // 400)]:
-        step = int(round((event["frame"] + 1) * steps))
-        point = np.array(event["position"], np.float64)
-        first, second = event["instances"]
+    for e in range(0, len(frames), max(1, len(frames) // 400)):
+        step = int(round((float(frames[e]) + 1) * steps))
+        point = positions[e].astype(np.float64)
+        first, second = instances[e]
         on_second.append(distance(second, point, step))
         on_first.append(distance(first, point, step))
-        assert event["force"] > 0 and -1 <= event["frame"] <= scene.num_frames
-        np.testing.assert_allclose(np.linalg.norm(event["contact_normal"]), 1.0, atol=1e-5)
+    assert (events["force"] > 0).all() and (-1 <= frames).all() and (frames <= scene.num_frames).all()
+    np.testing.assert_allclose(np.linalg.norm(events["contact_normal"], axis=-1), 1.0, atol=1e-5)
     assert np.abs(on_second).max() < 2e-3
     assert np.abs(on_first).max() < 0.03  # penetration and the hull's margin
     # A point away from the bodies is far from both (the check can fail).
-    assert abs(distance(0, np.array(events[0]["position"]) + [0, 0, 1.0], 0)) > 0.1
-    # Image positions: the point seen by the camera at the event's time.
-    event = events[len(events) // 2]
-    camera = description.camera.pose_at(np.array(event["frame"]), scene.num_frames)
-    pixel, _ = geometry.project(np.array(event["position"]), scene.intrinsics[0], camera)
-    np.testing.assert_allclose(event["image_position"], pixel, atol=1e-3)
+    assert abs(distance(0, positions[0] + [0, 0, 1.0], 0)) > 0.1
+    # Image positions: the points seen by the camera at each event's time.
+    camera = description.camera.pose_at(frames.astype(np.float64), scene.num_frames)  # (E,4,4)
+    pixels, _ = geometry.project(positions.astype(np.float64), scene.intrinsics[0], camera)
+    np.testing.assert_allclose(events["image_position"], pixels, atol=1e-3)
 
 
 def test_camera_lens_record_agrees_with_k(scene):
@@ -265,5 +267,6 @@ def test_layers_survive_the_shard_round_trip_within_their_precision(scene):
     assert not back.object_coordinates[scene.segmentation == 0].any()
     for key, value in scene.instances.items():
         assert back.instances[key].tobytes() == value.tobytes(), key
-    assert back.events == scene.events
+    for key, value in scene.events.items():
+        assert back.events[key].tobytes() == value.tobytes(), key
     assert validate_scene(back, load_config("inspect", "default")) == []

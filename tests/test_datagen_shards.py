@@ -38,9 +38,9 @@ def synthetic_scene(seed=0, frames=4, height=12, width=10, num_objects=3, num_tr
                  "visible_pixels": rng.integers(0, 99, (k, t)).astype(np.int32),
                  "image_position": f32(k, t, 2), "velocity": f32(k, t, 3),
                  "angular_velocity": f32(k, t, 3), "is_dynamic": rng.random(k) < 0.5}
-    events = [{key: (rng.integers(-1, k, shape).tolist() if dtype.kind == "i" else
-                     (rng.standard_normal(shape) * 10).astype(dtype).tolist())
-               for key, (dtype, shape) in EVENT_KEYS.items()} for _ in range(num_events)]
+    events = {key: (rng.integers(-1, k, (num_events, *shape)) if dtype.kind == "i" else
+                    rng.standard_normal((num_events, *shape)) * 10).astype(dtype)
+              for key, (dtype, shape) in EVENT_KEYS.items()}
 
     return Scene(
         rgb=rng.integers(0, 256, (t, h, w, 3), dtype=np.uint8),
@@ -73,7 +73,7 @@ def assert_scenes_equal(a: Scene, b: Scene):
         if isinstance(x, np.ndarray):
             assert isinstance(y, np.ndarray) and x.dtype == y.dtype and x.shape == y.shape, name
             assert np.array_equal(x, y), name  # bit-exact, float labels included
-        elif isinstance(x, dict) and name == "instances":
+        elif isinstance(x, dict) and name in ("instances", "events"):
             assert isinstance(y, dict) and list(x) == list(y), name
             for key in x:
                 assert x[key].dtype == y[key].dtype and x[key].shape == y[key].shape, key

@@ -206,12 +206,15 @@ def test_kubric_export_is_kubric_s_worker_layout_of_our_scenes(full, scenes, tmp
                 assert np.allclose(inst["image_positions"][t], uv, atol=1e-4)
         # collisions: instances as segmentation ids - 1, -1 for the floor and unseen objects;
         # frames from 1 at the first rendered frame
-        assert len(k["events"]["collisions"]) == len(s.events) > 0
-        for theirs, event in zip(k["events"]["collisions"], s.events):
-            assert theirs["instances"] == [order.index(i) if i in order else -1 for i in event["instances"]]
-            assert np.isclose(theirs["frame"], event["frame"] + 1)
+        assert len(k["events"]["collisions"]) == len(s.events["frame"]) > 0
+        for e, theirs in enumerate(k["events"]["collisions"]):
+            assert theirs["instances"] == [order.index(i) if i in order else -1
+                                           for i in s.events["instances"][e]]
+            assert np.isclose(theirs["frame"], s.events["frame"][e] + 1)
             assert np.allclose(theirs["image_position"],
-                               (np.asarray(event["image_position"]) + 0.5) / [w, h], atol=1e-6)
+                               (s.events["image_position"][e] + 0.5) / [w, h], atol=1e-6)
+            for key in ("force", "position", "contact_normal"):  # the float32 values, exactly
+                assert np.array_equal(np.float32(theirs[key]), s.events[key][e]), key
 
 
 # --- CoTracker's Kubric training layout ----------------------------------------------------------

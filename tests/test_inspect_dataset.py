@@ -198,7 +198,8 @@ def test_optional_layers_are_drawn_and_checked(tmp_path):
                      "visible_pixels": scene.instances["visible_pixels"] + 1}
     coordinates = scene.object_coordinates.copy()
     coordinates[scene.segmentation == 0] = 0.5
-    events = [dict(scene.events[0], instances=[99, -1])] + scene.events[1:]
+    events = {**scene.events, "instances": scene.events["instances"].copy()}
+    events["instances"][0] = [99, -1]
     bad = dataclasses.replace(scene, normal=scene.normal * 1.01, object_coordinates=coordinates,
                               instances=bad_instances, events=events)
     problems = " | ".join(dataset_check.validate_scene(bad, CFG))
@@ -206,6 +207,10 @@ def test_optional_layers_are_drawn_and_checked(tmp_path):
                      "instances['visible_pixels'] disagree with the segmentation",
                      "instances['bbox_2d'] disagree", "events name instances outside"):
         assert expected in problems, expected
+    listed = dataclasses.replace(scene, events=[{"frame": 0.0}])  # a list of dicts, not arrays
+    assert dataset_check.validate_scene(listed, CFG) == ["events must be a dict of arrays, got list"]
+    short = dataclasses.replace(scene, events={**scene.events, "force": scene.events["force"][1:]})
+    assert "events['force'] must be float32" in " | ".join(dataset_check.validate_scene(short, CFG))
     missing = dataclasses.replace(scene, events=None)
     assert "required fields are missing (truncated sample?): events" in \
         dataset_check.validate_scene(missing, CFG)[0]

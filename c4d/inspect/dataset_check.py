@@ -24,8 +24,8 @@ from c4d_core.errors import UserError
 from datagen import shards
 from datagen.annotate import segment_boxes
 from datagen.codecs import (ARRAY_FIELDS, CHECKSUMS, QUANTISED, QUANTUM, REQUIRED_FIELDS,
-                            wrong_layout)
-from datagen.scene import EVENT_KEYS, INSTANCE_KEYS, OPTIONAL_LAYERS, Scene
+                            event_records, instance_records, wrong_layout)
+from datagen.scene import OPTIONAL_LAYERS, Scene
 
 # |n| - 1 allowed in a stored normal: three components each within half a quantisation step.
 NORMAL_TOLERANCE = 4 * (QUANTISED["normal"][1] - QUANTISED["normal"][0]) / QUANTUM
@@ -202,19 +202,26 @@ def _layer_problems(scene: Scene, ok: set[str]) -> list[str]:
     return problems
 
 
+def _record_layout(records, values) -> str | None:
+    """What is wrong with the keys, dtypes or shapes of a record field (`Scene.instances` or
+    `Scene.events`), as the shard encoder (`records`: its `instance_records` or
+    `event_records`) would reject it; None if nothing."""
+    try:
+        records(values)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
 def _instance_problems(scene: Scene, with_segmentation: bool) -> list[str]:
     instances, t, k = scene.instances, scene.num_frames, len(scene.objects)
-    if not isinstance(instances, dict) or set(instances) != set(INSTANCE_KEYS):
-        return [f"instances must hold the keys {list(INSTANCE_KEYS)}"]
+    layout = _record_layout(instance_records, instances)
+    if layout:
+        return [layout]
+    if np.shape(instances["visible_pixels"]) != (k, t):
+        return [f"instances cover {np.shape(instances['visible_pixels'])} (objects, frames), the "
+                f"scene has {(k, t)}"]
     problems = []
-    for key, (dtype, shape) in INSTANCE_KEYS.items():
-        want = (k,) if shape is None else (k, t, *shape)
-        value = instances[key]
-        if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != want:
-            problems.append(f"instances[{key!r}] is {getattr(value, 'dtype', type(value).__name__)} "
-                            f"{np.shape(value)}, expected {dtype} {want}")
-    if problems:
-        return problems
     for key in ("bbox_3d", "velocity", "angular_velocity"):
         if not np.isfinite(instances[key]).all():
             problems.append(f"instances[{key!r}] has NaN or infinite values")
@@ -230,20 +237,18 @@ def _instance_problems(scene: Scene, with_segmentation: bool) -> list[str]:
 
 def _event_problems(scene: Scene) -> list[str]:
     events, k, t = scene.events, len(scene.objects), scene.num_frames
-    if not isinstance(events, list) or any(not isinstance(e, dict) or set(e) != set(EVENT_KEYS)
-                                           for e in events):
-        return [f"events must be a list of dicts with the keys {list(EVENT_KEYS)}"]
+    layout = _record_layout(event_records, events)
+    if layout:
+        return [layout]
     problems = []
-    instances = np.array([e["instances"] for e in events], np.int64).reshape(-1, 2)
+    instances = events["instances"]
     if ((instances < -1) | (instances >= k)).any() or (instances[:, 0] == instances[:, 1]).any():
         problems.append(f"events name instances outside [-1, {k - 1}] or a body with itself")
-    frames = np.array([e["frame"] for e in events], np.float64)
-    if ((frames < -1) | (frames > t)).any():
+    if ((events["frame"] < -1) | (events["frame"] > t)).any():
         problems.append(f"events have frames outside the simulated [-1, {t}]")
-    if any(not e["force"] > 0 for e in events):
+    if not (events["force"] > 0).all():
         problems.append("events have a normal force <= 0")
-    normals = np.array([e["contact_normal"] for e in events], np.float64).reshape(-1, 3)
-    if events and np.abs(np.linalg.norm(normals, axis=-1) - 1).max() > 1e-3:
+    if len(events["frame"]) and np.abs(np.linalg.norm(events["contact_normal"], axis=-1) - 1).max() > 1e-3:
         problems.append("events have contact normals that are not unit vectors")
     return problems
 

@@ -143,11 +143,13 @@ def collisions(scene: Scene, order: np.ndarray) -> list[dict[str, Any]]:
     (its first rendered frame is frame 1: ours + 1)."""
     h, w = scene.image_size
     index = {int(k): j for j, k in enumerate(order)}
-    return [{"instances": [index.get(int(i), -1) for i in event["instances"]],
-             "contact_normal": event["contact_normal"], "frame": event["frame"] + 1,
-             "force": event["force"], "position": event["position"],
-             "image_position": _normalised(event["image_position"], w, h)}
-            for event in scene.events]
+    events = {key: value.tolist() for key, value in scene.events.items()}  # float32-exact numbers
+    pixels = _normalised(scene.events["image_position"], w, h).tolist()  # (E,2)
+    return [{"instances": [index.get(i, -1) for i in instances], "contact_normal": normal,
+             "frame": frame + 1, "force": force, "position": position, "image_position": pixel}
+            for instances, normal, frame, force, position, pixel in zip(
+                events["instances"], events["contact_normal"], events["frame"], events["force"],
+                events["position"], pixels)]
 
 
 def write_scene(scene: Scene, folder: Path, name: str) -> None:
