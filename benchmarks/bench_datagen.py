@@ -6,7 +6,10 @@ worker; CPU seconds per scene against other commits, and the cost of the optiona
     .venv/bin/python benchmarks/bench_datagen.py --against /tmp/prev [--rounds 5] [--scenes 2]
     .venv/bin/python benchmarks/bench_datagen.py --against /tmp/old --cli --presets movi-f
 
-For each preset: one warm-up scene (EGL context, first asset loads), then the median over
+Runs as `c4d datagen`'s workers do: one thread (`init_worker_threads`: llvmpipe's
+LP_NUM_THREADS=1, OpenCV and torch 1). For each preset: every asset of the split is loaded first
+(as a worker has after its first 100-200 scenes; the one-time cost is printed apart), one
+warm-up scene (EGL context, shader compilation), then the median over
 `--scenes` scenes of the CPU seconds (all threads, Mesa's rasterizer included) of each part of
 `generate_scene` (`datagen.generate.PARTS`: sample, physics, render setup, the lit pass, the label
 pass (with the normals and object coordinates when on), flow, tracks, instances, events) and of
@@ -74,6 +77,10 @@ def time_preset(preset: str, args, extra: list[str] = ()) -> dict:
 
     cfg = preset_config(preset, args.resolution, args.frames, extra)
     assets = load_asset_library(cfg)
+    start = time.process_time()
+    for asset_id in assets.object_ids:  # what a worker has loaded after its first ~100 scenes
+        assets.get(asset_id)
+    assets_cpu = time.process_time() - start
     generate_scene(cfg, 10_000, assets)  # warm-up: EGL context, shader compilation
     rows = []
     for index in range(args.scenes):
@@ -87,7 +94,8 @@ def time_preset(preset: str, args, extra: list[str] = ()) -> dict:
         timings["encode"] = time.process_time() - start
         timings["blur_samples"] = scene.meta["blur_samples"]
         rows.append(timings)
-    return {key: statistics.median(row.get(key, 0.0) for row in rows) for key in rows[0]}
+    result = {key: statistics.median(row.get(key, 0.0) for row in rows) for key in rows[0]}
+    return {**result, "assets": assets_cpu, "num_assets": len(assets.object_ids)}
 
 
 def time_lit_pass(args) -> dict:
@@ -221,6 +229,10 @@ def main() -> None:
     args, extra = parser.parse_known_args()
     if extra and not args.child:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if not args.against:  # one thread, as `c4d datagen`'s workers run (before GL loads)
+        from c4d_core.system import init_worker_threads
+
+        init_worker_threads()
     if args.child:  # in the tree on PYTHONPATH: print CPU seconds per scene, last
         print(time_preset(args.child, args, extra)["cpu"])
         return
@@ -241,6 +253,8 @@ def main() -> None:
         print(f"| {preset} | " + " | ".join(f"{row.get(c, 0.0):.3f}" for c in columns)
               + f" | {row['cpu']:.2f} | {row['cpu'] + row['encode']:.2f} | {row['total']:.2f}"
               f" | {row['blur_samples']:.0f} |")
+        print(f"  (loading the {row['num_assets']:.0f} assets of the split, once per worker: "
+              f"{row['assets']:.1f} CPU-s, before the scenes timed)")
     lit = time_lit_pass(args)
     stock = lit["pyrender, stock shaders"]
     for name, ms in lit.items():

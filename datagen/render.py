@@ -584,19 +584,20 @@ class SceneRenderer:
         shadow_unit = 0 if self.shadows else None  # texture units: shadow maps, then material
         material_unit = len(self.sun_nodes) if self.shadows else 0
 
+        def per_program(program):
+            self._bind_lights(program, shadow_unit, light_matrices)
+            _set_uniform(program, "material.base_color_texture", material_unit)
+
         def material(program, node, primitive):
             material = primitive.material
             gl.glActiveTexture(gl.GL_TEXTURE0 + material_unit)
             material.baseColorTexture._bind()
-            _set_uniform(program, "material.base_color_texture", material_unit)
             _set_uniform(program, "material.base_color_factor", material.baseColorFactor)
             _set_uniform(program, "material.roughness_factor", material.roughnessFactor)
 
         self._opaque_state()
         V, P = renderer._get_camera_matrices(scene)
-        self._pass(renderer, nodes, flags, ProgramFlags.USE_MATERIAL, V, P,
-                   lambda program: self._bind_lights(program, shadow_unit, light_matrices),
-                   material)
+        self._pass(renderer, nodes, flags, ProgramFlags.USE_MATERIAL, V, P, per_program, material)
         width, height = renderer._main_fb_dims
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
         gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, renderer._main_fb)

@@ -59,11 +59,19 @@ CONTACT_DTYPE = np.dtype([("bodies", np.int32, (2,)), ("step", np.int32),
 MIN_CONTACT_FORCE = 1e-6  # N; Kubric's threshold for a contact to count as a collision event
 
 
-def _contacts(client: int, step: int, index_of: dict[int, int]) -> list[tuple]:
-    """The contacts of the current step pressing with more than `MIN_CONTACT_FORCE`, as
-    `CONTACT_DTYPE` rows; `index_of` maps body ids to object indices (-1 for the floor)."""
-    return [((index_of[c[1]], index_of[c[2]]), step, c[6], c[7], c[9], c[8])
-            for c in pb.getContactPoints(physicsClientId=client) if c[9] > MIN_CONTACT_FORCE]
+def _contact_rows(points: list[tuple], steps: list[int], index_of: dict[int, int]) -> np.ndarray:
+    """The contacts pressing with more than `MIN_CONTACT_FORCE`, as `CONTACT_DTYPE` (E,), from
+    pybullet's `getContactPoints` tuples of every step (`points`, the step of each in `steps`);
+    `index_of` maps body ids to object indices (-1 for the floor)."""
+    rows = np.zeros(len(points), CONTACT_DTYPE)
+    if points:
+        # getContactPoints' fields: 1, 2 bodies a and b; 6 position on b; 7 normal on b;
+        # 8 distance; 9 normal force
+        columns = list(zip(*points))
+        rows["bodies"] = [[index_of[a], index_of[b]] for a, b in zip(columns[1], columns[2])]
+        rows["step"], rows["position"], rows["normal"] = steps, columns[6], columns[7]
+        rows["distance"], rows["force"] = columns[8], columns[9]
+    return rows[rows["force"] > MIN_CONTACT_FORCE]
 
 
 def _configure(client: int, cfg) -> None:
@@ -195,12 +203,15 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
             [pb.getBaseVelocity(bodies[i], physicsClientId=client)[0] for i in placed]
         ).reshape(-1, 3)
         index_of = {floor: -1} | {bodies[i]: k for k, i in enumerate(placed)}
-        contact_rows: list[tuple] = []
+        contact_points: list[tuple] = []  # pybullet's tuples, of the step in contact_steps
+        contact_steps: list[int] = []
         for step in range(num_steps):
             if step:
                 pb.stepSimulation(physicsClientId=client)
                 if contacts:
-                    contact_rows += _contacts(client, step, index_of)
+                    found = pb.getContactPoints(physicsClientId=client)
+                    contact_points += found
+                    contact_steps += [step] * len(found)
             states.append([pb.getBasePositionAndOrientation(bodies[i], physicsClientId=client)
                            for i in placed])
             if step % steps_per_frame == 0:
@@ -217,4 +228,5 @@ def simulate(description: SceneDescription, assets: AssetLibrary, cfg) -> Simula
                              for a in (positions, quats_xyzw))
     return SimulationResult(placed, steps_per_frame, positions, geometry.quat_from_xyzw(quats_xyzw),
                             start_velocities, settle_steps, velocities[0], velocities[1],
-                            np.array(contact_rows, CONTACT_DTYPE) if contacts else None)
+                            _contact_rows(contact_points, contact_steps, index_of)
+                            if contacts else None)

@@ -83,17 +83,22 @@ def procedural_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     base = fractal_noise(rng, size)  # (S,S) large-scale colour variation
     detail = pattern(rng, size, PATTERNS[rng.integers(len(PATTERNS))])  # (S,S)
     grain = fractal_noise(rng, size, octaves=2, base_cells=size // 8)  # (S,S) fine grain
-    # In place where the dtype stays (float32, then float64 from the float64 `mix` on): the same
-    # operations and roundings as the expressions written out, with fewer (S,S,3) temporaries.
-    colour = palette[0] * (1 - base[..., None])  # (S,S,3) float32
-    colour += palette[1] * base[..., None]
-    weight = rng.uniform(0.35, 0.8) * detail[..., None]  # (S,S,1) float64
-    colour = colour * (1 - weight)  # float64
-    colour += palette[2] * weight
-    colour *= 0.8 + 0.4 * grain[..., None]
-    np.clip(colour, 0, 1, out=colour)
-    colour *= 255
-    return colour.astype(np.uint8)
+    weight = rng.uniform(0.35, 0.8) * detail  # (S,S) float32
+    # Per colour channel: ((p0 (1 - base) + p1 base) (1 - weight) + p2 weight) (0.8 + 0.4 grain),
+    # clipped to [0, 1], x 255; all float32, each channel a contiguous (S,S) plane (the same
+    # operations as on (S,S,3) arrays broadcast against the palette, 2-3x faster).
+    keep, shade = 1 - weight, 0.8 + 0.4 * grain  # (S,S) float32 each
+    colour = np.empty((size, size, 3), np.uint8)
+    for c in range(3):
+        plane = palette[0, c] * (1 - base)  # (S,S) float32
+        plane += palette[1, c] * base
+        plane *= keep
+        plane += palette[2, c] * weight
+        plane *= shade
+        np.clip(plane, 0, 1, out=plane)
+        plane *= 255
+        colour[..., c] = plane  # truncated to uint8, as astype
+    return colour
 
 
 def box_uv(vertices: np.ndarray, faces: np.ndarray, tiles: float = 1.0):
