@@ -78,7 +78,7 @@ def time_preset(preset: str, args, extra: list[str] = ()) -> dict:
     cfg = preset_config(preset, args.resolution, args.frames, extra)
     assets = load_asset_library(cfg)
     start = time.process_time()
-    for asset_id in assets.object_ids:  # what a worker has loaded after its first ~100 scenes
+    for asset_id in assets.object_ids:  # what a worker has loaded after its first 100-200 scenes
         assets.get(asset_id)
     assets_cpu = time.process_time() - start
     generate_scene(cfg, 10_000, assets)  # warm-up: EGL context, shader compilation

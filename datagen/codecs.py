@@ -130,12 +130,10 @@ def decode_field(name: str, suffix: str, data: bytes, num_frames: int) -> Any:
         return json.loads(bytes(data).decode("utf-8"))
     if name in QUANTISED:
         return dequantise(decode_array(data), *QUANTISED[name])
-    if name == "instances":
+    if name in RECORD_FIELDS:  # one array per key of the contract (a missing field: ValueError)
         records = decode_array(data)
-        return {key: np.ascontiguousarray(records[key]) for key in INSTANCE_KEYS}
-    if name == "events":
-        records = decode_array(data)
-        return {key: np.ascontiguousarray(records[key]) for key in EVENT_KEYS}
+        keys = INSTANCE_KEYS if name == "instances" else EVENT_KEYS
+        return {key: np.ascontiguousarray(records[key]) for key in keys}
     return decode_array(data)
 
 

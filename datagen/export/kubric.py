@@ -143,13 +143,12 @@ def collisions(scene: Scene, order: np.ndarray) -> list[dict[str, Any]]:
     (its first rendered frame is frame 1: ours + 1)."""
     h, w = scene.image_size
     index = {int(k): j for j, k in enumerate(order)}
-    events = {key: value.tolist() for key, value in scene.events.items()}  # float32-exact numbers
+    columns = [scene.events[key].tolist()  # Python numbers, float32-exact
+               for key in ("instances", "contact_normal", "frame", "force", "position")]
     pixels = _normalised(scene.events["image_position"], w, h).tolist()  # (E,2)
     return [{"instances": [index.get(i, -1) for i in instances], "contact_normal": normal,
              "frame": frame + 1, "force": force, "position": position, "image_position": pixel}
-            for instances, normal, frame, force, position, pixel in zip(
-                events["instances"], events["contact_normal"], events["frame"], events["force"],
-                events["position"], pixels)]
+            for instances, normal, frame, force, position, pixel in zip(*columns, pixels)]
 
 
 def write_scene(scene: Scene, folder: Path, name: str) -> None:
