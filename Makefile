@@ -43,7 +43,7 @@ readme-pictures: install browser
 	$(BIN)/c4d demo --out demo_out
 	cp demo_out/pictures/readme/*.png docs/images/
 	$(BIN)/c4d view $(DEMO_RECON) --gt $(DEMO_TRUTH) --scene-index 0 \
-		--stride 1 --screenshot docs/images/view_4d.png --size 1200x720
+		--stride 1 --screenshot docs/images/view_4d.png --size 1200x720 --overwrite
 
 clean:
 	rm -rf $(VENV) build *.egg-info

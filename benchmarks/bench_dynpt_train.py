@@ -4,8 +4,8 @@ Usage:
     python benchmarks/bench_dynpt_train.py [--shards DIR] [--format1-shards DIR] [--workers 1,2]
         [--loader-config PRESET --loader-set KEY=VALUE ...] [--clips 120] [--repeats 3]
         [--models tiny,cnn-only,full] [--clip T,H,W,N] [--batch B] [--iters I] [--set KEY=VALUE ...]
-        [--before DIR] [--cotracker-step SCRIPT --cotracker-model online --cotracker-window S]
-        [--malloc-variants] [--device cuda [--bf16]]
+        [--window-strides 4,8] [--before DIR] [--cotracker-repo DIR | --cotracker-step SCRIPT]
+        [--cotracker-model online --cotracker-window S] [--malloc-variants] [--device cuda [--bf16]]
 
 - Data: clips/s of the training pipeline (read, decode, clip choice, augmentation, track
   sampling, batching through a DataLoader) with each of `--workers` worker counts and with none
@@ -20,20 +20,33 @@ Usage:
   it (forward, loss, backward, gradient clipping, AdamW, OneCycle), after one warm-up step, and
   the peak resident memory, of each model in `--models` on one seeded batch (`clip_inputs`:
   `--batch` clips of `--clip T,H,W,N`), each in a fresh process per repeat, the systems
-  interleaved; medians over `--repeats`, ratios to the last system. `--device cuda` runs the
-  steps on the GPU instead: the times are then wall seconds per step between CUDA synchronisations
+  interleaved (the order reversed every other repeat); medians over `--repeats`, and each system's
+  ratios to the last system paired by repeat (median and range over the repeats; the load average
+  is printed with every process). `--window-strides 4,8` times each DynPT model once per window
+  stride (`model.window_stride`; `cnn-only/s8`), in the same interleaved run. `--device cuda` runs
+  the steps on the GPU instead: the times are then wall seconds per step between CUDA synchronisations
   and the memory is the peak GPU memory allocated by tensors (`--bf16`: forward and loss under
   bfloat16 autocast, as `train.bf16` trains; CoTracker3's script takes the same flags and wraps its
   forward as Lightning's bf16 precision does). `--set` overrides every
   model's config (`--iters` is `model.train_iters`). `--before DIR` times each model again with
   the `dynpt` package in DIR (`git archive COMMIT dynpt | tar -x -C DIR`): the code before a
-  change, in the same run. `--cotracker-step SCRIPT` times CoTracker3's own train step on the
-  same batch (saved as .npz) with a script kept outside this repository, which holds none of
-  CoTracker3's code: it is run as `SCRIPT --inputs NPZ --model online|offline --window S --iters I
+  change, in the same run. `--cotracker-repo DIR` times CoTracker3's own train step on the same
+  batch with facebookresearch/co-tracker's code in DIR (a checkout or `git archive` outside this
+  repository, which holds none of its code; the commit used is printed when DIR is a git work tree):
+  `CoTrackerThree{Online,Offline}` built as its `train_on_kubric.py` builds it (stride 4, radius 3,
+  4 levels, 64 virtual tracks, `linear_layer_for_vis_conf`, window `--cotracker-window`), random
+  weights, its own `fetch_optimizer` (AdamW 5e-4, weight decay 5e-4 as its launch script sets,
+  OneCycle) and its own `forward_batch` (its query sampling from the visibility, its losses with the
+  Huber term), then backward, `clip_grad_norm_` 1.0 and the two steps as its `Lite.run` loop takes
+  them (float32 on the CPU; with `--bf16` on a GPU its model's forward under bfloat16 autocast, as
+  Lightning's bf16 precision wraps it). `train_on_kubric.py`'s imports that the step does not use
+  (Lightning, the visualiser, the evaluator, the dataset utilities) are replaced by empty stand-ins.
+  `--cotracker-step SCRIPT` instead times it with a script of one's own on the same batch (saved
+  as .npz): it is run as `SCRIPT --inputs NPZ --model online|offline --window S --iters I
   --steps K [--device cuda] [--bf16]` and prints one JSON line with step_cpu_s, step_s,
-  peak_rss_gib, base_rss_gib (after its imports) and peak_gpu_gib (None on the CPU);
-  docs/PERFORMANCE.md says what it computes. DynPT's steps run with the allocator `c4d train`
-  sets (`prepare_allocator(every_size=True)`); `--malloc-variants` adds each model with glibc's
+  peak_rss_gib, base_rss_gib (after its imports) and peak_gpu_gib (None on the CPU). CoTracker3
+  runs with glibc's default allocator, as its script does. DynPT's steps run with the allocator
+  `c4d train` sets (`prepare_allocator(every_size=True)`); `--malloc-variants` adds each model with glibc's
   defaults (`+glibc`) and CoTracker3 with `c4d train`'s allocator (`+kept`). Models: `tiny` (`tiny-cpu`),
   `tiny-2x` (`tiny-cpu-2x`: the clip at twice its height and width), `cnn-only`
   (`paper-gpu-cnn-only`), `full` (`paper-gpu`, frozen ViT-L with random weights: no DUSt3R file
@@ -218,6 +231,7 @@ def step_times(model: str, steps: int, inputs: str, overrides: list[str], device
     B, T, _, H, W = video.shape
     peak_gpu = peak_memory(dev)  # bytes; None on a CPU
     return {"model": model, "B": B, "T": T, "HxW": f"{H}x{W}", "N": queries.shape[1],
+            "threads": torch.get_num_threads(), "window": [cfg.model.window_len, cfg.model.window_stride],
             "trainable_params": sum(p.numel() for p in net.parameters() if p.requires_grad),
             "step_s": statistics.median(times[1:]), "all_step_s": times[1:],
             "step_cpu_s": statistics.median(cpu[1:]), "all_step_cpu_s": cpu[1:],
@@ -225,42 +239,205 @@ def step_times(model: str, steps: int, inputs: str, overrides: list[str], device
             "peak_gpu_gib": None if peak_gpu is None else peak_gpu / 2**30}
 
 
+def _import_cotracker_training(repo: str):
+    """facebookresearch/co-tracker's `train_on_kubric` module and model classes from the checkout
+    in `repo` (outside this repository). The modules it imports for what the step does not use
+    (Lightning, the visualiser, the evaluator, the datasets' loaders) are empty stand-ins, so
+    neither Lightning nor torchvision is needed; `forward_batch`, `fetch_optimizer`, the models and
+    the losses are its own code."""
+    import types
+
+    sys.path.insert(0, str(Path(repo).resolve()))
+
+    def stand_in(name: str, **attrs) -> None:
+        module = types.ModuleType(name)
+        module.__dict__.update(attrs)
+        sys.modules[name] = module
+
+    unused = type("Unused", (), {})
+    if "pytorch_lightning" not in sys.modules:
+        stand_in("pytorch_lightning")
+        stand_in("pytorch_lightning.lite", LightningLite=unused)
+    stand_in("cotracker.utils.visualizer", Visualizer=unused)
+    stand_in("cotracker.evaluation.core.evaluator", Evaluator=unused)
+    stand_in("cotracker.utils.train_utils", **{n: unused for n in (
+        "Logger", "get_eval_dataloader", "get_train_dataset", "sig_handler", "term_handler",
+        "run_test_eval")})
+    import train_on_kubric  # co-tracker's, from `repo`
+
+    return train_on_kubric
+
+
+def cotracker_commit(repo: str) -> str:
+    """The commit of the co-tracker checkout in `repo` (`git rev-parse HEAD`; whether its
+    `cotracker/` or `train_on_kubric.py` differ from it), or why it is not known."""
+    out = subprocess.run(["git", "-C", repo, "rev-parse", "--short", "HEAD"], capture_output=True,
+                         text=True)
+    top = subprocess.run(["git", "-C", repo, "rev-parse", "--show-toplevel"], capture_output=True,
+                         text=True)
+    if out.returncode or Path(top.stdout.strip()).resolve() != Path(repo).resolve():
+        return "not a git work tree (say which commit was exported)"
+    changed = subprocess.run(["git", "-C", repo, "diff", "--quiet", "HEAD", "--", "cotracker",
+                              "train_on_kubric.py"]).returncode
+    return out.stdout.strip() + (" with changes to its code" if changed else "")
+
+
+def cotracker_step_times(repo: str, model: str, window: int, iters: int, steps: int, inputs: str,
+                         device: str = "cpu", bf16: bool = False) -> dict:
+    """CoTracker3's own train step in this (fresh) process, on the batch saved at `inputs`, as its
+    `train_on_kubric.py` takes it: the model built as there (`--model_stride 4 --corr_radius 3
+    --num_virtual_tracks 64 --linear_layer_for_vis_conf`, window `window`, the clip's size as
+    `crop_size`), random weights, its `fetch_optimizer` (lr 5e-4, `--wdecay 0.0005` as its launch
+    script), then per step: `zero_grad`, its `forward_batch` (query sampling, forward with
+    `is_train=True`, its losses; `--add_huber_loss` as its launch script), the loss terms summed,
+    backward, `clip_grad_norm_(1.0)`, optimizer and scheduler steps. Its GradScaler is disabled
+    there (no-op). `bf16` on a GPU: the model's forward under bfloat16 autocast (Lightning's bf16
+    precision wraps the forward only; the losses run in float32). Timed as `step_times`."""
+    import contextlib
+    from types import SimpleNamespace
+
+    from dynpt.device import peak_memory, reset_peak_memory
+
+    with contextlib.redirect_stdout(sys.stderr):  # its prints (parameter counts) off the JSON line
+        tok = _import_cotracker_training(repo)
+    base_rss = _peak_rss_gib()  # after the imports
+    dev = torch.device(device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    with np.load(inputs) as data:
+        arrays = {k: data[k] for k in data.files}
+    B, T, H, W, _ = arrays["video"].shape
+    batch = SimpleNamespace(  # its CoTrackerData fields as its collate_fn_train delivers them
+        video=torch.from_numpy(arrays["video"]).permute(0, 1, 4, 2, 3).float().to(dev),
+        trajectory=torch.from_numpy(arrays["tracks"]).to(dev),
+        visibility=torch.from_numpy(arrays["visible"]).float().to(dev),
+        valid=torch.ones(arrays["visible"].shape, device=dev))
+    args = SimpleNamespace(  # train_on_kubric's arguments as its online launch script sets them
+        lr=5e-4, wdecay=5e-4, num_steps=steps + 1, train_iters=iters, sliding_window_len=window,
+        offline_model=model == "offline", query_sampling_method=None, add_huber_loss=True,
+        train_only_on_visible=False)
+    cls = tok.CoTrackerThreeOffline if args.offline_model else tok.CoTrackerThreeOnline
+    torch.manual_seed(0)
+    net = cls(stride=4, corr_radius=3, corr_levels=4, window_len=window, num_virtual_tracks=64,
+              model_resolution=(H, W), linear_layer_for_vis_conf=True).to(dev)
+    if bf16 and dev.type == "cuda":
+        forward = net.forward
+
+        def forward_bf16(*a, **kw):
+            with torch.autocast("cuda", dtype=torch.bfloat16):
+                return forward(*a, **kw)
+
+        net.forward = forward_bf16
+    with contextlib.redirect_stdout(sys.stderr):
+        optimizer, scheduler = tok.fetch_optimizer(args, net)
+    net.train()
+    times, cpu = [], []
+    reset_peak_memory(dev)
+    for _ in range(steps + 1):  # the first step warms up allocators, as in `step_times`
+        sync()
+        start, cpu_start = time.perf_counter(), time.process_time()
+        optimizer.zero_grad(set_to_none=True)
+        output = tok.forward_batch(batch, net, args)
+        loss = sum(v["loss"] for v in output.values() if "loss" in v)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        optimizer.step()
+        scheduler.step()
+        sync()
+        times.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - cpu_start)
+    peak_gpu = peak_memory(dev)
+    return {"model": f"cotracker3-{model}", "B": B, "T": T, "HxW": f"{H}x{W}",
+            "N": arrays["tracks"].shape[2], "threads": torch.get_num_threads(),
+            "trainable_params": sum(p.numel() for p in net.parameters() if p.requires_grad),
+            "step_s": statistics.median(times[1:]), "all_step_s": times[1:],
+            "step_cpu_s": statistics.median(cpu[1:]), "all_step_cpu_s": cpu[1:],
+            "peak_rss_gib": _peak_rss_gib(), "base_rss_gib": base_rss,
+            "peak_gpu_gib": None if peak_gpu is None else peak_gpu / 2**30}
+
+
+def _head() -> str:
+    """This checkout's commit (and whether it has changes), as the runs are reported."""
+    root = Path(__file__).resolve().parent.parent
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+                          capture_output=True, text=True).stdout.strip() or "unknown"
+    dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True).stdout.strip()
+    return head + (" with uncommitted changes" if dirty else "")
+
+
+def _load() -> str:
+    return " ".join(f"{v:.1f}" for v in os.getloadavg())
+
+
+def _system_command(name: str, inputs: Path, args) -> tuple[list[str], dict]:
+    """The child command and environment of one system: `cotracker3[+kept]` (CoTracker3's step by
+    `--cotracker-repo` or `--cotracker-step`) or a DynPT model `MODEL[/sSTRIDE][@before][+glibc]`."""
+    env = dict(os.environ)
+    device = ["--device", args.device] + ["--bf16"] * args.bf16
+    if name.startswith("cotracker3"):
+        common = ["--inputs", str(inputs), "--steps", str(args.steps), "--iters", str(args.iters or 4),
+                  *device]
+        if args.cotracker_repo:
+            cmd = [sys.executable, __file__, "--only-cotracker", args.cotracker_repo, *common,
+                   "--cotracker-model", args.cotracker_model, "--cotracker-window",
+                   str(args.cotracker_window)]
+        else:
+            cmd = [sys.executable, args.cotracker_step, *common, "--model", args.cotracker_model,
+                   "--window", str(args.cotracker_window)]
+        if name.endswith(KEPT):  # c4d train's allocator, through glibc's variables
+            env.update(allocator_environment(every_size=True))
+        return cmd, env
+    model, _, stride = name.split("@")[0].removesuffix(GLIBC).partition("/s")
+    cmd = [sys.executable, __file__, "--only-steps", model, "--steps", str(args.steps), "--inputs",
+           str(inputs), *[f"--set={o}" for o in args.set],
+           *([f"--set=model.train_iters={args.iters}"] if args.iters else []),
+           *([f"--set=model.window_stride={stride}"] if stride else []), *device,
+           *["--glibc-malloc"] * name.endswith(GLIBC)]
+    if name.endswith("@before"):  # the same model from the code in --before
+        env["PYTHONPATH"] = os.pathsep.join([args.before, env.get("PYTHONPATH", "")])
+    return cmd, env
+
+
+def _paired(runs: dict[str, list[dict]], name: str, ref: str, key: str) -> list[float]:
+    """Per repeat, `name`'s `key` over the reference's in the same repeat (a paired ratio)."""
+    return [a[key] / b[key] for a, b in zip(runs[name], runs[ref])]
+
+
+def _median_range(values: list[float]) -> str:
+    return f"{statistics.median(values):.2f} ({min(values):.2f}-{max(values):.2f})"
+
+
 def compare_steps(systems: list[str], args) -> None:
-    """Each system's train step in a fresh process per repeat, the systems interleaved (a, b, a,
-    b, ...); per system the median over repeats of each process's median CPU seconds (on a GPU:
-    wall seconds), its peak RSS (on a GPU: peak GPU memory; medians), and the ratios to the last
-    system (`--cotracker-step` when given)."""
+    """Each system's train step in a fresh process per repeat, the systems interleaved (a, b, c,
+    then c, b, a, ...: the order reversed every other repeat, so no system always follows the same
+    one); per system the median over repeats of each process's median CPU seconds (on a GPU: wall
+    seconds) and its peak RSS (on a GPU: peak GPU memory), and its ratios to the last system
+    (CoTracker3 when given) paired by repeat: median and range over the repeats. The load average
+    is printed with every process."""
     B, (T, H, W, N) = args.batch, (int(v) for v in args.clip.split(","))
     inputs = Path(tempfile.mkdtemp(prefix="bench-dynpt-step-")) / "batch.npz"
     np.savez(inputs, **clip_inputs(B, T, H, W, N))
     runs: dict[str, list[dict]] = {name: [] for name in systems}
-    device = ["--device", args.device] + ["--bf16"] * args.bf16
+    if args.cotracker_repo:
+        print(f"co-tracker: {Path(args.cotracker_repo).resolve()} at "
+              f"{cotracker_commit(args.cotracker_repo)}", flush=True)
     for repeat in range(args.repeats):
-        for name in systems:
-            env = dict(os.environ)
-            if name.startswith("cotracker3"):
-                cmd = [sys.executable, args.cotracker_step, "--inputs", str(inputs), "--model",
-                       args.cotracker_model, "--window", str(args.cotracker_window), "--iters",
-                       str(args.iters), "--steps", str(args.steps), *device]
-                if name.endswith(KEPT):  # c4d train's allocator, through glibc's variables
-                    env.update(allocator_environment(every_size=True))
-            else:
-                cmd = [sys.executable, __file__, "--only-steps", name.split("@")[0].removesuffix(GLIBC),
-                       "--steps", str(args.steps), "--inputs", str(inputs), *[f"--set={o}" for o in args.set],
-                       *([f"--set=model.train_iters={args.iters}"] if args.iters else []), *device,
-                       *["--glibc-malloc"] * name.endswith(GLIBC)]
-            if name.endswith("@before"):  # the same model from the code in --before
-                env["PYTHONPATH"] = os.pathsep.join([args.before, env.get("PYTHONPATH", "")])
+        for name in systems if repeat % 2 == 0 else systems[::-1]:
+            cmd, env = _system_command(name, inputs, args)
+            load_before = _load()
             out = subprocess.run(cmd, capture_output=True, text=True, env=env)
             if out.returncode:
                 sys.exit(f"{name} failed (exit {out.returncode}):\n{out.stderr[-3000:]}")
             r = json.loads(out.stdout.strip().splitlines()[-1])
             runs[name].append(r)
-            print(f"repeat {repeat} {name:>10} (B={r['B']} T={r['T']} {r['HxW']} N={r['N']}, "
-                  f"{r['trainable_params'] / 1e6:.2f}M trainable): CPU {r['step_cpu_s']:.2f} s/step "
+            print(f"repeat {repeat} {name:>12} (B={r['B']} T={r['T']} {r['HxW']} N={r['N']}, "
+                  f"{r['trainable_params'] / 1e6:.2f}M trainable, {r.get('threads', '?')} threads"
+                  + (f", window {r['window'][0]}/{r['window'][1]}" if r.get("window") else "")
+                  + f"): CPU {r['step_cpu_s']:.2f} s/step "
                   f"(wall {r['step_s']:.2f} s), peak RSS {r['peak_rss_gib']:.2f} GiB "
                   f"(after imports {r['base_rss_gib']:.2f})"
-                  + (f", peak GPU {r['peak_gpu_gib']:.2f} GiB" if r.get("peak_gpu_gib") else ""), flush=True)
+                  + (f", peak GPU {r['peak_gpu_gib']:.2f} GiB" if r.get("peak_gpu_gib") else "")
+                  + f"; load {load_before} -> {_load()}", flush=True)
     if args.device != "cpu":
         _gpu_table(runs, args)
         return
@@ -268,13 +445,18 @@ def compare_steps(systems: list[str], args) -> None:
                   for key in ("step_cpu_s", "step_s", "peak_rss_gib", "base_rss_gib")}
            for name, rs in runs.items()}
     ref = systems[-1]
-    print(f"\n| system | CPU s/step (median of {args.repeats}) | peak RSS GiB | above imports GiB "
-          f"| time / {ref} | memory / {ref} | memory above imports / {ref} |\n|---|---:|---:|---:|---:|---:|---:|")
+    print(f"\n| system | CPU s/step (median of {args.repeats}; range) | peak RSS GiB (range) "
+          f"| above imports GiB | time / {ref}, paired (median; range) "
+          f"| memory / {ref}, paired (median; range) |\n|---|---:|---:|---:|---:|---:|")
     for name, m in med.items():
-        above, ref_above = m["peak_rss_gib"] - m["base_rss_gib"], med[ref]["peak_rss_gib"] - med[ref]["base_rss_gib"]
-        print(f"| {name} | {m['step_cpu_s']:.2f} | {m['peak_rss_gib']:.2f} | {above:.2f} | "
-              f"{m['step_cpu_s'] / med[ref]['step_cpu_s']:.2f} | "
-              f"{m['peak_rss_gib'] / med[ref]['peak_rss_gib']:.2f} | {above / ref_above:.2f} |")
+        cpu = [r["step_cpu_s"] for r in runs[name]]
+        rss = [r["peak_rss_gib"] for r in runs[name]]
+        print(f"| {name} | {m['step_cpu_s']:.2f} ({min(cpu):.2f}-{max(cpu):.2f}) | "
+              f"{m['peak_rss_gib']:.2f} ({min(rss):.2f}-{max(rss):.2f}) | "
+              f"{m['peak_rss_gib'] - m['base_rss_gib']:.2f} | "
+              f"{_median_range(_paired(runs, name, ref, 'step_cpu_s'))} | "
+              f"{_median_range(_paired(runs, name, ref, 'peak_rss_gib'))} |")
+    print(f"\nload average at the end: {_load()}")
 
 
 def _gpu_table(runs: dict[str, list[dict]], args) -> None:
@@ -311,6 +493,13 @@ def main() -> None:
     parser.add_argument("--iters", type=int, default=0, help="refinement iterations (0: the preset's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="config override for every DynPT model, e.g. model.window_stride=8")
+    parser.add_argument("--window-strides", default="", metavar="S1,S2",
+                        help="time each DynPT model once per window stride (model.window_stride), "
+                        "interleaved, e.g. 4,8: the preset's and CoTracker3's (S/2) at window 16")
+    parser.add_argument("--cotracker-repo", metavar="DIR",
+                        help="a facebookresearch/co-tracker checkout (outside this repository): times "
+                        "CoTracker3's own train step (its train_on_kubric.forward_batch, losses, "
+                        "optimiser) on the same batch, in the same interleaved run, as the reference")
     parser.add_argument("--cotracker-step", metavar="SCRIPT",
                         help="a script timing CoTracker3's own train step on the same batch (not part "
                         "of this repository): run as SCRIPT --inputs NPZ --model M --window S --iters I "
@@ -328,6 +517,7 @@ def main() -> None:
                         "CoTracker3 with the one `c4d train` sets (+kept): how much of a ratio is the "
                         "allocator")
     parser.add_argument("--only-steps", help=argparse.SUPPRESS)  # child process mode
+    parser.add_argument("--only-cotracker", metavar="DIR", help=argparse.SUPPRESS)  # child mode
     parser.add_argument("--glibc-malloc", action="store_true", help=argparse.SUPPRESS)  # child mode
     parser.add_argument("--inputs", help=argparse.SUPPRESS)  # child process mode: the batch
     args = parser.parse_args()
@@ -335,8 +525,16 @@ def main() -> None:
         print(json.dumps(step_times(args.only_steps, args.steps, args.inputs, args.set, args.device,
                                     args.bf16, args.glibc_malloc)))
         return
+    if args.only_cotracker:
+        print(json.dumps(cotracker_step_times(args.only_cotracker, args.cotracker_model,
+                                              args.cotracker_window, args.iters or 4, args.steps,
+                                              args.inputs, args.device, args.bf16)))
+        return
+    if args.cotracker_repo and args.cotracker_step:
+        parser.error("--cotracker-repo or --cotracker-step, not both")
 
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average "
+    print(f"{time.strftime('%Y-%m-%d %H:%M')}, commit {_head()}, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} threads, load average "
           f"{' '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} cores")
     if args.clips > 0:
         cv2.setNumThreads(1)  # as in the loader workers, so 0 workers measures one core's work
@@ -368,8 +566,10 @@ def main() -> None:
                       f"{_runs(cpu)} worker CPU ms/clip; ratio to 0 workers "
                       f"{statistics.median(rates) / statistics.median(base):.2f}x", flush=True)
     models = [m for m in args.models.split(",") if m]
+    strides = [int(v) for v in args.window_strides.split(",") if v]
+    models = [f"{m}/s{v}" for m in models for v in strides] if strides else models
     systems = models + [f"{m}@before" for m in models if args.before]
-    cotracker = ["cotracker3"] * bool(args.cotracker_step)
+    cotracker = ["cotracker3"] * bool(args.cotracker_step or args.cotracker_repo)
     if args.malloc_variants:
         systems += [f"{m}{GLIBC}" for m in models]
         cotracker = [f"{c}{KEPT}" for c in cotracker] + cotracker

@@ -10,19 +10,30 @@ outputs) is its own; time is the median CPU time of `--repeats` forward passes (
 CPU seconds, which other load on a shared machine inflates less than wall time), with the wall
 time alongside.
 
+`--cotracker-repo DIR` times CoTracker3 on the same inputs in the same run, with
+facebookresearch/co-tracker's code in DIR (a checkout outside this repository, which holds none of
+its code; the commit is printed): `CoTrackerThreeOffline(stride=4, corr_radius=3, window_len=60)`
+as its `CoTrackerPredictor` builds it (released sizes), random weights, called directly as DynPT's
+model is (`model(video.float(), queries, iters=--iters)`: without the predictor's resize to
+384x512, a no-op here, and its 6x6 support grid of extra queries), float32, inference mode, one
+fresh process per case the same way. `--pairs K` runs each case K times per model, DynPT and
+CoTracker3 interleaved (the order reversed every other pair), and prints the paired ratios (median
+and range over the pairs) with the load average around every process. Offline windowing only.
+
 `--save-inputs DIR` writes each case's clip and queries (case_T{T}_N{N}.npz: video uint8
-(1,T,3,H,W), queries float32 (1,N,3) as (t, x, y)), so CoTracker3 can be timed on the same inputs
-by a script of its own (this repository does not contain or import CoTracker3's code; the
-figures of both are in docs/PERFORMANCE.md).
+(1,T,3,H,W), queries float32 (1,N,3) as (t, x, y)), so CoTracker3 can also be timed on the same
+inputs by a script of its own.
 
     python benchmarks/bench_vs_cotracker3.py [--windowing offline|online] [--cases 24x256,48x1024]
-        [--repeats 2] [--threads 1] [--iters 6] [--save-inputs DIR] [--json OUT]
+        [--repeats 2] [--threads 1] [--iters 6] [--cotracker-repo DIR [--pairs 5]]
+        [--save-inputs DIR] [--json OUT]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -81,6 +92,59 @@ def run_case(case: str, windowing: str, repeats: int, threads: int, iters: int) 
             "peak_mib": _peak_mib() - baseline}
 
 
+def run_cotracker_case(repo: str, case: str, repeats: int, threads: int, iters: int) -> dict:
+    """One case of CoTracker3 (co-tracker's `CoTrackerThreeOffline` from `repo`) in this process,
+    measured as `run_case` measures DynPT."""
+    sys.path.insert(0, str(Path(repo).resolve()))
+    from cotracker.models.core.cotracker.cotracker3_offline import CoTrackerThreeOffline
+
+    torch.set_num_threads(threads)
+    T, N = (int(v) for v in case.split("x"))
+    video, queries = clip_and_queries(T, N)
+    baseline = _peak_mib()
+    torch.manual_seed(0)
+    model = CoTrackerThreeOffline(stride=4, corr_radius=3, window_len=60).eval()  # as its predictor
+    cpu, wall = [], []
+    with torch.inference_mode():
+        for _ in range(repeats):
+            c0, w0 = time.process_time(), time.perf_counter()
+            out = model(video.float(), queries, iters=iters)
+            cpu.append(time.process_time() - c0)
+            wall.append(time.perf_counter() - w0)
+            del out
+    return {"model": "cotracker3-offline", "T": T, "N": N, "H": H, "W": W, "iters": iters,
+            "threads": torch.get_num_threads(), "params": sum(p.numel() for p in model.parameters()),
+            "cpu_s": statistics.median(cpu), "wall_s": statistics.median(wall), "cpu_runs": cpu,
+            "peak_mib": _peak_mib() - baseline}
+
+
+def _load() -> str:
+    return " ".join(f"{v:.1f}" for v in os.getloadavg())
+
+
+def _head() -> str:
+    """This checkout's commit (and whether it has changes)."""
+    root = Path(__file__).resolve().parent.parent
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+                          capture_output=True, text=True).stdout.strip() or "unknown"
+    dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True).stdout.strip()
+    return head + (" with uncommitted changes" if dirty else "")
+
+
+def _cotracker_commit(repo: str) -> str:
+    out = subprocess.run(["git", "-C", repo, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    top = subprocess.run(["git", "-C", repo, "rev-parse", "--show-toplevel"], capture_output=True, text=True)
+    if out.returncode or Path(top.stdout.strip()).resolve() != Path(repo).resolve():
+        return "not a git work tree (say which commit was exported)"
+    changed = subprocess.run(["git", "-C", repo, "diff", "--quiet", "HEAD", "--", "cotracker"]).returncode
+    return out.stdout.strip() + (" with changes to its code" if changed else "")
+
+
+def _median_range(values: list[float]) -> str:
+    return f"{statistics.median(values):.2f} ({min(values):.2f}-{max(values):.2f})"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--windowing", choices=("offline", "online"), default="offline")
@@ -88,28 +152,69 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--iters", type=int, default=6)
+    parser.add_argument("--cotracker-repo", metavar="DIR",
+                        help="a facebookresearch/co-tracker checkout: time CoTracker3 offline on the "
+                        "same inputs, interleaved with DynPT")
+    parser.add_argument("--pairs", type=int, default=1,
+                        help="with --cotracker-repo: processes per model and case, interleaved")
     parser.add_argument("--save-inputs", help="write each case's clip and queries here (.npz)")
     parser.add_argument("--json", help="write the results here")
     parser.add_argument("--only", help=argparse.SUPPRESS)  # child process mode: one case
+    parser.add_argument("--only-cotracker", metavar="DIR", help=argparse.SUPPRESS)  # child: CoTracker3
     args = parser.parse_args()
+    if args.only and args.only_cotracker:
+        print(json.dumps(run_cotracker_case(args.only_cotracker, args.only, args.repeats, args.threads,
+                                            args.iters)))
+        return
     if args.only:
         print(json.dumps(run_case(args.only, args.windowing, args.repeats, args.threads, args.iters)))
         return
-    results = []
+    if args.cotracker_repo and args.windowing != "offline":
+        parser.error("--cotracker-repo compares offline windowing only")
+    print(f"{time.strftime('%Y-%m-%d %H:%M')}, commit {_head()}, torch {torch.__version__}, "
+          f"{args.threads} threads, load average {_load()} on {os.cpu_count()} cores"
+          + (f"; co-tracker {Path(args.cotracker_repo).resolve()} at "
+             f"{_cotracker_commit(args.cotracker_repo)}" if args.cotracker_repo else ""), flush=True)
+    results, table = [], []
+    common = ["--windowing", args.windowing, "--repeats", str(args.repeats), "--threads",
+              str(args.threads), "--iters", str(args.iters)]
+    systems = {"dynpt": []} | ({"cotracker3": ["--only-cotracker", args.cotracker_repo]}
+                               if args.cotracker_repo else {})
     for case in args.cases.split(","):
         if args.save_inputs:
             T, N = (int(v) for v in case.split("x"))
             video, queries = clip_and_queries(T, N)
             Path(args.save_inputs).mkdir(parents=True, exist_ok=True)
             np.savez(Path(args.save_inputs) / f"case_T{T}_N{N}.npz", video=video.numpy(), queries=queries.numpy())
-        out = subprocess.run([sys.executable, __file__, "--only", case, "--windowing", args.windowing,
-                              "--repeats", str(args.repeats), "--threads", str(args.threads),
-                              "--iters", str(args.iters)], capture_output=True, text=True, check=True)
-        r = json.loads(out.stdout.strip().splitlines()[-1])
-        results.append(r)
-        print(f"{r['model']} T={r['T']} N={r['N']} {H}x{W}: CPU {r['cpu_s']:.1f} s (runs "
-              f"{[round(v, 1) for v in r['cpu_runs']]}), wall {r['wall_s']:.1f} s, peak "
-              f"{r['peak_mib']:.0f} MiB, {r['params'] / 1e6:.2f}M params", flush=True)
+        runs: dict[str, list[dict]] = {name: [] for name in systems}
+        for pair in range(args.pairs if args.cotracker_repo else 1):
+            for name in list(systems) if pair % 2 == 0 else list(systems)[::-1]:
+                load_before = _load()
+                out = subprocess.run([sys.executable, __file__, "--only", case, *common, *systems[name]],
+                                     capture_output=True, text=True)
+                if out.returncode:
+                    sys.exit(f"{name} {case} failed (exit {out.returncode}):\n{out.stderr[-3000:]}")
+                r = json.loads(out.stdout.strip().splitlines()[-1])
+                r["pair"], r["load"] = pair, [load_before, _load()]
+                runs[name].append(r)
+                results.append(r)
+                print(f"{r['model']} T={r['T']} N={r['N']} {H}x{W}: CPU {r['cpu_s']:.1f} s (runs "
+                      f"{[round(v, 1) for v in r['cpu_runs']]}), wall {r['wall_s']:.1f} s, peak "
+                      f"{r['peak_mib']:.0f} MiB, {r['params'] / 1e6:.2f}M params, {r['threads']} "
+                      f"threads; load {load_before} -> {_load()}", flush=True)
+        if args.cotracker_repo:
+            d, c = runs["dynpt"], runs["cotracker3"]
+            time_ratio = [a["cpu_s"] / b["cpu_s"] for a, b in zip(d, c)]
+            mem_ratio = [a["peak_mib"] / b["peak_mib"] for a, b in zip(d, c)]
+            table.append(f"| {case} | {statistics.median(a['cpu_s'] for a in d):.1f} | "
+                         f"{statistics.median(b['cpu_s'] for b in c):.1f} | {_median_range(time_ratio)} | "
+                         f"{statistics.median(a['peak_mib'] for a in d):,.0f} | "
+                         f"{statistics.median(b['peak_mib'] for b in c):,.0f} | {_median_range(mem_ratio)} |")
+    if table:
+        print(f"\n| frames x points | DynPT CPU s (median of {args.pairs}) | CoTracker3 CPU s | time "
+              "ratio, paired (median; range) | DynPT peak MiB | CoTracker3 peak MiB | memory ratio, "
+              "paired (median; range) |\n|---|---:|---:|---:|---:|---:|---:|\n" + "\n".join(table))
+        print(f"\nload average at the end: {_load()}")
     if args.json:
         with atomic_path(Path(args.json)) as tmp:
             Path(tmp).write_text(json.dumps(results, indent=1))

@@ -3,6 +3,7 @@
     python benchmarks/device_check.py [--out DIR] [--train-seconds 300] [--budget-s 480]  # CUDA
     python benchmarks/device_check.py --cpu                               # tiny sizes, ~1 minute
     python benchmarks/device_check.py --skip dust3r,c4d                   # leave sections out
+    python benchmarks/device_check.py --section-limit-s 100 --section-limit-s loader=60
 
 Sections, each through the project's own builders (configs, `dynpt.train.Trainer`,
 `c4d_pipeline` DUSt3R network and pointmap source, `c4d_pipeline.optimize.optimise`):
@@ -29,15 +30,25 @@ Each section's seconds are printed as it ends; the table's last row is the total
 --budget-s (480). A section that fails puts its one-line error in the table and the run goes on;
 the exit status is then 1, as it is for a run over its budget. `--cpu` hides any GPU and shrinks
 every size (CI runs it: tests/test_device_check.py).
+
+Each section runs in a process of its own, in its own process group, under a time limit
+(--section-limit-s: 150 s each, the training run 150 s beyond its --train-seconds; `KEY=S` sets
+one section's). A section past its limit is killed with every process it started (loader and
+datagen workers included), its row in the table reads "timed out after N s", and the check goes
+on with the next section: a section that hangs costs its limit, never the GPU's whole lease.
+This process itself never touches the GPU, so the sections are forked from it safely.
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
+import signal
 import sys
 import tempfile
 import time
+from importlib.metadata import version
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes
@@ -46,6 +57,9 @@ ROWS: list[tuple[str, str, str, str]] = []  # (check, setting, result, peak memo
 STEP_CLIPS_PER_S: dict[str, float] = {}  # section 2's training speed per precision, for section 5
 SECTIONS = ("shards", "speed", "dust3r", "c4d", "loader", "run")  # --skip keys, in the run's order
 BUDGET_MARGIN = 15.0  # seconds of the budget kept free (the run's start and checkpoint, rounding)
+SECTION_LIMIT_S = 150.0  # a section's default time limit; the run's is this beyond --train-seconds
+STOP_GRACE_S = 30.0  # seconds a section's process may take to exit after its last row
+_TO_PARENT = None  # in a section's process: the pipe its rows and outcome go to
 
 
 def log(message: str) -> None:
@@ -53,7 +67,12 @@ def log(message: str) -> None:
 
 
 def row(check: str, setting: str, result: str, memory: str = "-") -> None:
-    ROWS.append((check, setting, result, memory))
+    """A row of the table (sent to the parent from a section's process, which prints the table)."""
+    cells = (check, setting, result, memory)
+    if _TO_PARENT is not None:
+        _TO_PARENT.send(("row", cells))
+    else:
+        ROWS.append(cells)
     log(f"{check} | {setting} | {result} | {memory}")
 
 
@@ -362,6 +381,83 @@ def c4d_stage1(sizes: Sizes) -> None:
         del pw, flows, result, parts
 
 
+# --- each section in a process of its own, under a time limit ---------------------------------
+
+
+def _section_process(section, to_parent) -> None:
+    """The body of a section's process: run `section`, stream its rows and send its outcome
+    ("done", its result, section 2's clips/s, the GPU's name) or ("failed", the one-line error)."""
+    global _TO_PARENT
+    os.setpgrp()  # a group of its own, before it starts any process: the parent kills the group
+    _TO_PARENT = to_parent
+    import torch
+
+    torch.manual_seed(0)
+    try:
+        result = section()
+    except Exception as exc:  # noqa: BLE001 -- one line in the table, then the next section
+        message = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
+        to_parent.send(("failed", f"{type(exc).__name__}: {message}"))
+        return
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
+    to_parent.send(("done", result, dict(STEP_CLIPS_PER_S), gpu))
+
+
+def _kill_group(pgid: int) -> None:
+    """SIGKILL to process group `pgid` (a section's process and all it started), if any is left."""
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
+def run_section(section, limit_s: float) -> tuple:
+    """Run `section` (no arguments) in a forked process of its own process group for at most
+    `limit_s` seconds; its rows reach `ROWS` as they come. Returns ("done", result, clips/s, GPU),
+    ("failed", message) or ("timed out",). Whatever the outcome, no process of the section is
+    left when this returns: at the limit (or on Ctrl-C here) the whole group is killed."""
+    context = multiprocessing.get_context("fork")  # this process holds no thread, no GPU context
+    receive, send = context.Pipe(duplex=False)
+    child = context.Process(target=_section_process, args=(section, send))
+    child.start()
+    send.close()  # the child's end: EOF here once the child is gone
+    end = time.monotonic() + limit_s
+    outcome: tuple = ("timed out",)
+    try:
+        while receive.poll(max(0.0, end - time.monotonic())):
+            try:
+                message = receive.recv()
+            except EOFError:
+                outcome = ("failed", f"the section's process died (exit status {child.exitcode})")
+                break
+            if message[0] != "row":
+                outcome = message
+                break
+            ROWS.append(message[1])
+        if outcome[0] != "timed out":
+            child.join(STOP_GRACE_S)  # its own exit (a loader's workers stop, CUDA is released)
+    finally:
+        _kill_group(child.pid)  # the section's stragglers, or all of it past its limit
+        child.kill()  # in case it was stopped before it had its own group
+        child.join()
+        receive.close()
+    return outcome
+
+
+def parse_limit(text: str) -> tuple[str | None, float]:
+    """`--section-limit-s` values: `S` (every section) or `KEY=S` (one section)."""
+    key, _, seconds = text.rpartition("=")
+    if key and key not in SECTIONS:
+        raise argparse.ArgumentTypeError(f"{key}: no such section; choose from {','.join(SECTIONS)}")
+    try:
+        value = float(seconds)
+    except ValueError:
+        value = -1.0
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: give positive seconds, S or KEY=S")
+    return key or None, value
+
+
 # --- main ---------------------------------------------------------------------------------------
 
 
@@ -382,6 +478,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip", type=lambda text: [k for k in text.split(",") if k], default=[],
                         metavar="KEYS", help=f"sections left out, comma-separated: {','.join(SECTIONS)} "
                         "(the DynPT sections need the shards)")
+    parser.add_argument("--section-limit-s", type=parse_limit, action="append", default=[],
+                        metavar="[KEY=]S", help=f"time limit of every section (S) or of one (KEY=S), "
+                        f"repeatable [{SECTION_LIMIT_S:.0f}; the run: that beyond --train-seconds]; a "
+                        "section past it is killed with its processes and reported as timed out")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.skip) - set(SECTIONS))
     if unknown:
@@ -389,12 +489,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.budget_s <= 0:
         parser.error(f"--budget-s must be positive, got {args.budget_s:g}")
     if args.cpu:
-        os.environ["CUDA_VISIBLE_DEVICES"] = ""  # before torch is imported
-    import torch
-
-    torch.manual_seed(0)
+        os.environ["CUDA_VISIBLE_DEVICES"] = ""  # before torch is imported (in the sections)
     sizes = Sizes(args.cpu, args.train_seconds)
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
+    every = dict(args.section_limit_s).get(None, SECTION_LIMIT_S)
+    limits = {key: every for key in SECTIONS} | {"run": every + sizes.train_seconds}
+    limits |= {key: seconds for key, seconds in args.section_limit_s if key is not None}
+    gpu = "unknown (no section finished)"
     with tempfile.TemporaryDirectory(prefix="device-check-") as tmp:
         out = args.out or Path(tmp)
         start, failed = time.perf_counter(), 0
@@ -406,29 +506,34 @@ def main(argv: list[str] | None = None) -> int:
                     ("C4D stage 1 (GA+CMA+CTS)", lambda: c4d_stage1(sizes)),
                     ("DynPT loader", lambda: loader_speed(shards[0], sizes)),
                     ("DynPT training run", lambda: training_run(*shards, out, sizes, deadline))]
-        sections = [(name, section) for key, (name, section) in zip(SECTIONS, sections)
+        sections = [(key, name, section) for key, (name, section) in zip(SECTIONS, sections)
                     if key not in args.skip]
         seconds = []
-        for name, section in sections:
+        for key, name, section in sections:
             section_start = time.perf_counter()
             if name.startswith("DynPT") and shards is None:
                 failed += 1
                 row(name, "SKIPPED", "no shards")
                 continue
-            try:
-                result = section()
+            outcome = run_section(section, limits[key])
+            if outcome[0] == "done":
+                result, step_rates, gpu = outcome[1:]
                 shards = result if result is not None else shards
-            except Exception as exc:  # noqa: BLE001 -- one line in the table, then the next section
+                STEP_CLIPS_PER_S.update(step_rates)
+            elif outcome[0] == "failed":
                 failed += 1
-                message = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
-                row(name, "FAILED", f"{type(exc).__name__}: {message}")
+                row(name, "FAILED", outcome[1])
+            else:
+                failed += 1
+                row(name, "TIMED OUT", f"timed out after {limits[key]:.0f} s (--section-limit-s); "
+                    "its processes were killed")
             seconds.append(f"{name} {time.perf_counter() - section_start:.0f} s")
             log(f"section {seconds[-1]}")
         total = time.perf_counter() - start
     over = total > args.budget_s
     row("total", ", ".join(seconds), f"{total:.0f} s of the {args.budget_s:.0f} s budget"
         f"{' (OVER BUDGET)' if over else ''}")
-    print(f"device_check: torch {torch.__version__}, GPU {gpu}, {'--cpu, ' if args.cpu else ''}"
+    print(f"device_check: torch {version('torch')}, GPU {gpu}, {'--cpu, ' if args.cpu else ''}"
           f"{total:.0f} s in all (budget {args.budget_s:.0f} s{', exceeded' if over else ''}), "
           f"{failed} section(s) failed\n")
     print(table())

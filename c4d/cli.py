@@ -35,6 +35,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "config": ("c4d.cli_config", "print a preset's fully resolved config: config show GROUP/PRESET [key=value ...]"),
 }
 
+# The subcommands that write outputs (c4d_core.ownership), and what --overwrite adds for each.
+WRITERS: dict[str, str] = {name: "" for name in SUBCOMMANDS if name != "config"}
+WRITERS["run"] = "; also needed to replace a reconstruction already in --out"
+
 log = logging.getLogger("c4d")
 
 
@@ -62,6 +66,12 @@ def build_parser(chosen: str | None) -> argparse.ArgumentParser:
             "worker processes the command starts; for train, pretrain-pointmaps and run also "
             "the config key `threads`)",
         )
+        if name in WRITERS:
+            sub.add_argument(
+                "--overwrite", action="store_true",
+                help="replace an output made by another c4d command, or a file c4d did not write "
+                "(the old one is kept until the new output is complete; a folder holding files "
+                "c4d did not write is never replaced)" + WRITERS[name])
         if name == chosen:
             importlib.import_module(module_name).add_arguments(sub)
     return parser

@@ -10,7 +10,9 @@
    DIS flow, the trained tracker) and with GA only, and score both against the truth;
 5. draw the pictures (dataset report, track overlay, reconstruction report).
 Each step writes OUT/<step>/ and a record OUT/<step>/done.json; a step whose record exists is
-skipped, so re-running the command resumes. OUT/summary.md gathers every number and file.
+skipped, so re-running the command resumes. OUT/summary.md gathers every number and file. The
+records name files relative to OUT, so a moved or copied OUT resumes from its own files (an
+older record's absolute or working-directory-relative paths are found inside OUT by their tail).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from c4d.cli import run_subcommand
 from c4d_core.config import load_config, to_dict, to_yaml
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
+from c4d_core.ownership import output_folder
 from c4d_core.system import configure_threads
 
 log = logging.getLogger("c4d.demo")
@@ -60,6 +63,24 @@ class Demo:
         self.train_dirs = {p: out / "data" / "train" / p for p in cfg.data.presets}
 
     # -- bookkeeping
+    def stored(self, path: Path) -> str:
+        """`path` (inside OUT) as a record names it: relative to OUT, with '/'."""
+        return Path(path).relative_to(self.out).as_posix()
+
+    def located(self, stored: str) -> Path:
+        """The file a record names: `stored` relative to OUT; in an older record (an absolute
+        path, or one relative to the directory the demo ran in) the longest tail of it that
+        exists inside OUT, never the original folder's file. None there: a `UserError` naming
+        the record (the user never passed that path)."""
+        parts = Path(stored).parts
+        for start in range(1 if Path(stored).is_absolute() else 0, len(parts)):
+            candidate = self.out.joinpath(*parts[start:])
+            if candidate.exists():
+                return candidate
+        raise UserError(f"the demo's step records in {self.out} name {stored}, which is not in "
+                        f"{self.out} (moved or deleted); delete the folder of the step that wrote "
+                        "it (train/ or reconstruct/ there) and rerun the demo to redo that step")
+
     def claim_folder(self) -> None:
         """Refuse to resume into a folder made with another demo config."""
         record = self.out / "demo-config.yaml"
@@ -94,8 +115,8 @@ class Demo:
                 _c4d("datagen", "--preset", preset, "--num-scenes", count, "--out", target,
                      "--split", split, "--seed", seed, "--resolution", size, "--frames", d.frames,
                      "--scenes-per-shard", d.scenes_per_shard, "--workers", d.workers)
-        return {"train": {p: str(v) for p, v in self.train_dirs.items()},
-                "val": {p: str(v) for p, v in self.val_dirs.items()},
+        return {"train": {p: self.stored(v) for p, v in self.train_dirs.items()},
+                "val": {p: self.stored(v) for p, v in self.val_dirs.items()},
                 "scenes_per_preset": {"train": d.train_scenes, "val": d.val_scenes},
                 "resolution": list(d.resolution), "frames": d.frames}
 
@@ -111,8 +132,8 @@ class Demo:
             args.append("--resume")
         _c4d(*args)
         checkpoint = latest_checkpoint(folder)
-        return {"checkpoint": str(checkpoint), "config": t.config, "steps": t.steps,
-                "overrides": list(t.overrides), "log": str(folder / "log.jsonl")}
+        return {"checkpoint": self.stored(checkpoint), "config": t.config, "steps": t.steps,
+                "overrides": list(t.overrides), "log": self.stored(folder / "log.jsonl")}
 
     # -- 3. eval
     def eval(self, folder: Path, checkpoint: str) -> dict:
@@ -132,7 +153,7 @@ class Demo:
             results[preset] = {"dynpt": ours["summary"], "zero_motion": baseline["summary"],
                                "d_acc_interval": d_acc_difference_interval(ours, baseline)}
         write_json(folder / "eval.json", results)
-        return {"results": results, "file": str(folder / "eval.json")}
+        return {"results": results, "file": self.stored(folder / "eval.json")}
 
     # -- 4. reconstruct
     def reconstruct(self, folder: Path, checkpoint: str) -> dict:
@@ -166,9 +187,9 @@ class Demo:
                                     "pointmaps": "ground truth + noise + static-world bias",
                                     "tracker": checkpoint})
                 metrics[name][variant] = evaluate(read_reconstruction(target), scene)
-                outputs[name][variant] = str(target)
+                outputs[name][variant] = self.stored(target)
         write_json(folder / "metrics.json", metrics)
-        return {"source": str(source), "metrics": metrics, "outputs": outputs}
+        return {"source": self.stored(source), "metrics": metrics, "outputs": outputs}
 
     # -- 5. pictures
     def pictures(self, folder: Path, recon_dir: str, checkpoint: str) -> dict:
@@ -179,19 +200,19 @@ class Demo:
              "--compare", f"GA only={Path(recon_dir).parent / 'ga-only'}")
         _c4d("track", Path(recon_dir) / "frames", "--ckpt", checkpoint, "--out", folder / "tracks")
         readme = readme_pictures(folder)
-        return {"dataset_report": str(folder / "dataset" / "index.html"),
-                "reconstruction_report": str(folder / "reconstruction" / "index.html"),
-                "track_overlay": str(folder / "tracks" / "overlay.mp4"),
-                "readme_pictures": f"{readme}/{{dataset_sheet,tracks,trajectory}}.png",
-                "scene": f"{self.val_dirs[r.preset]} #0 (the first reconstructed scene)"}
+        return {"dataset_report": self.stored(folder / "dataset" / "index.html"),
+                "reconstruction_report": self.stored(folder / "reconstruction" / "index.html"),
+                "track_overlay": self.stored(folder / "tracks" / "overlay.mp4"),
+                "readme_pictures": f"{self.stored(readme)}/{{dataset_sheet,tracks,trajectory}}.png",
+                "scene": f"{self.stored(self.val_dirs[r.preset])} #0 (the first reconstructed scene)"}
 
 
 def readme_pictures(pictures: Path) -> Path:
     """The README's pictures of the first reconstructed val scene, into `pictures/readme/`
     (`make readme-pictures` copies them to docs/images/ and adds the 4D view, drawn by `c4d view
-    --screenshot`): its contact sheet, three frames of the track overlay (first, middle, and the
-    frame with the most points predicted moving) and the camera trajectory."""
-    from c4d_core.draw import side_by_side
+    --screenshot`): its contact sheet, three frames of the track overlay (first, middle, and of
+    the others the frame with the most visible points predicted moving) and the camera trajectory."""
+    from c4d_core.draw import MOVING_THRESHOLD, side_by_side
     from c4d_core.video import read_video, write_image
 
     out = pictures / "readme"
@@ -201,10 +222,13 @@ def readme_pictures(pictures: Path) -> Path:
     shutil.copyfile(pictures / "reconstruction" / "trajectory.png", out / "trajectory.png")
     overlay = read_video(pictures / "tracks" / "overlay.mp4")
     with np.load(pictures / "tracks" / "tracks.npz") as tracks:
-        moving = ((tracks["moving"] > 0.5) & tracks["visible"]).sum(axis=1)  # (T,)
-    frames = sorted({0, len(overlay) // 2, int(moving.argmax())})
-    write_image(out / "tracks.png", side_by_side([overlay[t] for t in frames],
-                                                 [f"frame {t}" for t in frames]))
+        moving = ((tracks["moving"] > MOVING_THRESHOLD) & tracks["visible"]).sum(axis=1)  # (T,) red dots
+    first, middle = 0, len(overlay) // 2
+    moving[[first, middle]] = -1  # the third panel is a third frame even when one of these has the most
+    most = int(moving.argmax())
+    frames = sorted({first, middle, most})
+    labels = [f"frame {t}" + (", most moving" if t == most else "") for t in frames]
+    write_image(out / "tracks.png", side_by_side([overlay[t] for t in frames], labels))
     return out
 
 
@@ -224,27 +248,34 @@ def _pct(value) -> str:
 
 
 def _tracker_verdict(results: dict) -> list[str]:
-    """One line per metric saying, in points, whether DynPT beats the zero-motion baseline; for
-    D-ACC also the 95 % interval of the difference over the val scenes, and whether it excludes 0."""
+    """One line per metric saying, in points, whether DynPT beats the zero-motion baseline. Where
+    the 95 % interval of the difference over the val scenes is known (D-ACC), "yes" only when
+    every val set's interval is above 0, "no" when all are below, otherwise that the difference
+    is within the scene-to-scene variation; without intervals, by the sign of the differences."""
+    from dynpt.evaluate import interval_verdict, signed
+
     lines = []
     for key, label in (("d_acc", "D-ACC"), ("d_acc_balanced", "balanced D-ACC"),
                        ("average_jaccard", "AJ")):
         diffs = {p: 100 * (r["dynpt"][key] - r["zero_motion"][key]) for p, r in results.items()}
-        verdict = "yes" if all(d > 0 for d in diffs.values()) else "no"
-        text = ", ".join(f"{p} {d:+.1f}" for p, d in diffs.items()) + " points"
+        text = ", ".join(f"{p} {signed(d)}" for p, d in diffs.items()) + " points"
         intervals = {p: r[f"{key}_interval"] for p, r in results.items() if f"{key}_interval" in r}
         if intervals:
             text += "; 95 % interval over the val scenes: " + ", ".join(
-                f"{p} {100 * low:+.1f} to {100 * high:+.1f}" for p, (low, high) in intervals.items())
-            if verdict == "yes" and any(low <= 0 for low, _ in intervals.values()):
-                text += ", so within the scene-to-scene variation"
+                f"{p} {signed(100 * low)} to {signed(100 * high)}" for p, (low, high) in intervals.items())
+            verdicts = {interval_verdict(low, high) for low, high in intervals.values()}
+            verdict = ("yes" if verdicts == {"above"} else "no" if verdicts == {"below"}
+                       else "within the scene-to-scene variation")
+        else:
+            verdict = "yes" if all(d > 0 for d in diffs.values()) else "no"
         lines.append(f"- DynPT above the baseline on {label}: **{verdict}** ({text})")
     return lines
 
 
 def summary_markdown(records: dict) -> str:
     """OUT/summary.md: every number of the run and where each file is."""
-    lines = ["# c4d demo summary", "", "| step | seconds |", "|---|---|"]
+    lines = ["# c4d demo summary", "", "Files are named relative to this folder.", "",
+             "| step | seconds |", "|---|---|"]
     lines += [f"| {name} | {rec['seconds']} |" for name, rec in records.items()]
     data = records["data"]
     lines += ["", "## Data", "",
@@ -305,17 +336,21 @@ def summary_markdown(records: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config("demo", "quick" if args.quick else "default", args.config, args.overrides)
-    demo = Demo(cfg, args.out)
+    with output_folder(args.out, "demo", args.overwrite):
+        return _run_demo(Demo(cfg, args.out))
+
+
+def _run_demo(demo: Demo) -> int:
+    """Every step of `demo` (each resumed if done), then its summary."""
     demo.claim_folder()
     records = {"data": demo.run_step("data", demo.data)}
     records["train"] = demo.run_step("train", demo.train)
-    checkpoint = records["train"]["checkpoint"]
+    checkpoint = str(demo.located(records["train"]["checkpoint"]))
     records["eval"] = demo.run_step("eval", lambda f: demo.eval(f, checkpoint))
     records["reconstruct"] = demo.run_step("reconstruct", lambda f: demo.reconstruct(f, checkpoint))
-    recon_dir = records["reconstruct"]["outputs"]["scene-000"]["C4D"]
+    recon_dir = str(demo.located(records["reconstruct"]["outputs"]["scene-000"]["C4D"]))
     records["pictures"] = demo.run_step("pictures", lambda f: demo.pictures(f, recon_dir, checkpoint))
-    summary = args.out / "summary.md"
-    summary.write_text(summary_markdown(records))
+    summary = write_text(demo.out / "summary.md", summary_markdown(records))
     print(summary.read_text())
     print(f"wrote {summary}")
     return 0

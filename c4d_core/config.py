@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import importlib.resources
 import json
+import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -26,6 +27,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from c4d_core import schema
 from c4d_core.errors import UserError
+from c4d_core.files import check_regular_file
+
+YAML_HINT = "give the path of a YAML file"  # what to do about a config path that is no file
 
 
 @functools.lru_cache(maxsize=None)
@@ -48,6 +52,7 @@ def resolve_preset(group: str, name_or_path: str | Path) -> Path:
     path = Path(name_or_path)
     if path.suffix in (".yaml", ".yml"):
         if not path.is_file():
+            check_regular_file(path, "config file", YAML_HINT)
             raise UserError(f"config file {str(path)!r} does not exist")
         return path
     preset = config_dir() / group / f"{name_or_path}.yaml"
@@ -67,11 +72,39 @@ def yaml_problem(exc: yaml.YAMLError) -> str:
     return f"not valid YAML{where}: {' '.join(str(problem).split())}"
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML would keep the
+    last one without a word; YAML says keys are unique). Keys merged in with `<<` may repeat."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        lines: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                repeated = key in lines
+            except TypeError:  # an unhashable key: the base class refuses it below
+                continue
+            if repeated:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the key {key!r} is given twice in one mapping (also on line "
+                    f"{lines[key]}); keep one", key_node.start_mark)
+            lines[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep)
+
+
+def _load_yaml(text: str) -> Any:
+    """The value of YAML `text`, read as `yaml.safe_load` reads it but with unique keys."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)
+
+
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> DictConfig:
     """Load one YAML file with its `_base_` chain merged underneath it."""
     path = path.resolve()
     if path in seen:
         raise UserError(f"config {path} inherits from itself through `_base_`")
+    check_regular_file(path, "config", YAML_HINT)  # a named pipe would never be read to its end
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -83,7 +116,7 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> DictConfig:
         raise UserError(f"config {path} is not UTF-8 text (byte 0x{raw[exc.start]:02x} on line "
                         f"{line}); save it as UTF-8") from exc
     try:
-        data = yaml.safe_load(text) or {}
+        data = _load_yaml(text) or {}
     except yaml.YAMLError as exc:
         raise UserError(f"config {path}: {yaml_problem(exc)}") from exc
     if not isinstance(data, dict):
@@ -146,7 +179,7 @@ def parse_overrides(overrides: Iterable[str]) -> dict:
         if not sep or not key.strip():
             raise UserError(f"override {item!r} is not of the form key=value")
         try:
-            value = yaml.safe_load(raw) if raw.strip() else None
+            value = _load_yaml(raw) if raw.strip() else None
         except yaml.YAMLError as exc:
             raise UserError(f"override {item!r}: value is {yaml_problem(exc)}") from exc
         node = nested
@@ -157,6 +190,20 @@ def parse_overrides(overrides: Iterable[str]) -> dict:
                 raise UserError(f"override {item!r} conflicts with another override of {part}")
         node[parts[-1]] = value
     return nested
+
+
+def refuse_override_as_positional(value: str, name: str, rest: Iterable[str], usage: str) -> None:
+    """`UserError` where the positional argument `name` (VIDEO, SOURCE) holds a `key=value`
+    override (argparse fills positionals in order): the overrides were put before it, or it was
+    left out. `rest`: the overrides parsed after it (it is among them when it came later);
+    `usage`: the command's form, e.g. `c4d run VIDEO --pointmaps CKPT --out DIR [key=value ...]`."""
+    key, sep, _ = value.partition("=")
+    if not sep or not re.fullmatch(r"[A-Za-z_][\w.]*", key) or Path(value).exists():
+        return
+    moved = next((item for item in rest if "=" not in item), None)
+    where = (f"the override {value!r} stands before {name} {moved!r}" if moved else
+             f"{name} is missing: {value!r} in its place is a key=value override")
+    raise UserError(f"{where}; give {name} first and the overrides after it: {usage}")
 
 
 def load_config(
@@ -179,6 +226,7 @@ def load_config(
     for extra in config_files:
         extra_path = Path(extra)
         if not extra_path.is_file():
+            check_regular_file(extra_path, "config file", YAML_HINT)
             raise UserError(f"config file {str(extra_path)!r} does not exist")
         update = OmegaConf.to_container(_read_yaml(extra_path))
         _check_against(cfg, update, "", f"config {extra_path}")
@@ -270,19 +318,45 @@ def training_config(group: str, args) -> DictConfig:
     """The config of a training command (`args` from `add_training_arguments`): the preset with the
     overrides; with `--resume`, the run folder's resolved `train.out_dir/config.yaml` with the
     command line's overrides over it, so `--resume train.out_dir=DIR` is enough to continue (the
-    folder is `--config`'s `train.out_dir`, else the root preset's, unless an override sets it)."""
+    folder is `--config`'s `train.out_dir`, else the root preset's, unless an override sets it).
+
+    A resumed run's `train.out_dir` is the folder its config.yaml was read from, whatever path
+    the saved one names (a moved or copied run folder continues in itself). `--config` with
+    `--resume` must agree with the saved config on the keys it sets (those it changes from the
+    root preset, after the overrides): a `UserError` names those where it does not, as the saved
+    config is the one used."""
     if not args.resume:
         if args.config is None:
             raise UserError(f"give --config: a preset of configs/{group} "
                             f"({', '.join(available_presets(group))}) or a YAML path "
                             "(or --resume train.out_dir=DIR to continue a run)")
         return load_config(group, args.config, overrides=args.overrides)
-    out_dir = load_config(group, args.config or schema.ROOTS[group], overrides=args.overrides).train.out_dir
+    chosen = load_config(group, args.config or schema.ROOTS[group], overrides=args.overrides)
+    out_dir = chosen.train.out_dir
     saved = Path(out_dir) / "config.yaml"
     if not saved.is_file():
         raise UserError(f"no run in {out_dir} to resume (no config.yaml there); start one with "
                         f"--config PRESET_OR_YAML train.out_dir={out_dir} (without --resume)")
-    return load_config(group, saved, overrides=args.overrides)
+    resumed = load_config(group, saved, overrides=[*args.overrides,
+                                                   f"train.out_dir={json.dumps(str(out_dir))}"])
+    if args.config is not None:
+        own = _changed_keys(to_dict(_root(group)), to_dict(load_config(group, args.config)))
+        ignored = set(_changed_keys(to_dict(chosen), to_dict(resumed)))
+        contradicted = [key for key in own if key in ignored]
+        if contradicted:
+            raise UserError(f"--resume continues the run in {out_dir} with its saved config.yaml, "
+                            f"which --config {args.config} contradicts in "
+                            f"{', '.join(contradicted[:5])}; drop --config to resume that run, or "
+                            "start a new run with it in another train.out_dir")
+    return resumed
+
+
+def _changed_keys(old: Any, new: Any, prefix: str = "") -> list[str]:
+    """The dotted keys whose values differ between two plain configs (`to_dict`), sorted."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return [changed for key in sorted(old.keys() | new.keys(), key=str)
+                for changed in _changed_keys(old.get(key), new.get(key), f"{prefix}{key}.")]
+    return [] if old == new else [prefix[:-1]]
 
 
 def to_yaml(cfg: DictConfig | dict) -> str:

@@ -4,9 +4,9 @@ numpy and OpenCV only (the floor never imports torch), so every package draws wi
 writing pictures and videos to files is `c4d_core.video`.
 Images are RGB uint8 throughout: (H,W,3) for one picture, (T,H,W,3) for a video.
 
-Track overlays (`draw_tracks`) colour each point by its mobility:
-    static  -> STATIC_COLOR (blue),  moving -> MOVING_COLOR (red),
-    a probability in between blends the two; a filled dot is visible, a hollow ring occluded.
+Track overlays (`draw_tracks`) colour each point by its mobility, in exactly the legend's colours:
+    static  -> STATIC_COLOR (blue),  moving (probability > MOVING_THRESHOLD) -> MOVING_COLOR (red);
+    a filled dot is visible, a hollow ring occluded.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from c4d_core.geometry import rescale_pixels
 STATIC_COLOR = (40, 120, 255)  # RGB: points that stay put in the world
 MOVING_COLOR = (255, 50, 40)  # RGB: points whose world position changes
 TRACK_LEGEND = {"static": STATIC_COLOR, "moving": MOVING_COLOR}
+MOVING_THRESHOLD = 0.5  # a predicted mobility probability above this is drawn as moving
 BACKGROUND_SEGMENT_COLOR = (60, 60, 60)  # RGB of segmentation id 0 (floor, dome)
 INVALID_COLOR = (0, 0, 0)  # RGB of pixels without a valid value (depth <= 0, NaN)
 OUTLINE_COLOR = (20, 20, 20)  # RGB rim around track dots
@@ -168,9 +169,10 @@ def blend(image: np.ndarray, overlay: np.ndarray, alpha: float = 0.5) -> np.ndar
 
 
 def track_colors(moving: np.ndarray) -> np.ndarray:
-    """Mobility (T,N) bool or probability in [0,1] -> RGB float (T,N,3) blending static and moving."""
-    p = np.clip(np.nan_to_num(np.asarray(moving, dtype=np.float32)), 0.0, 1.0)[..., None]
-    return (1.0 - p) * np.asarray(STATIC_COLOR, np.float32) + p * np.asarray(MOVING_COLOR, np.float32)
+    """Mobility (T,N) bool or probability in [0,1] -> RGB float (T,N,3): MOVING_COLOR where it is
+    above MOVING_THRESHOLD, STATIC_COLOR elsewhere (NaN too), so every dot has a legend colour."""
+    is_moving = (np.nan_to_num(np.asarray(moving, dtype=np.float32)) > MOVING_THRESHOLD)[..., None]
+    return np.where(is_moving, np.asarray(MOVING_COLOR, np.float32), np.asarray(STATIC_COLOR, np.float32))
 
 
 def _identity_colors(num_tracks: int) -> np.ndarray:
@@ -308,6 +310,31 @@ def key_strip(width: int, entries: dict[str, Sequence[int]] | None = None, depth
         x += size + 6
         text("flow: hue = direction")
     return strip
+
+
+def title_strip(width: int, text: str, height: int = 26) -> np.ndarray:
+    """A dark strip (height, width, 3) with `text` in white, shrunk to fit, to place above a picture."""
+    strip = np.full((height, width, 3), 32, np.uint8)
+    scale = min(0.5, 0.5 * (width - 12) / max(1, cv2.getTextSize(text, _FONT, 0.5, 1)[0][0]))
+    cv2.putText(strip, text, (6, height // 2 + 5), _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return strip
+
+
+def draw_axes(image: np.ndarray, origin: np.ndarray, tips: np.ndarray, names: Sequence[str],
+              colors: Sequence[Sequence[int]]) -> None:
+    """Draw axes in place on an RGB image (H,W,3): a 2-pixel line from `origin` (2,) to each of
+    `tips` (K,2), pixel (x, y), in `colors[k]` (RGB, unblended) with `names[k]` just past its tip."""
+    origin = np.asarray(origin, np.float64)
+    start = tuple(int(round(c)) for c in origin)
+    for tip, name, color in zip(np.asarray(tips, np.float64), names, colors):
+        color = tuple(int(c) for c in color)
+        cv2.line(image, start, tuple(int(round(c)) for c in tip), color, 2, cv2.LINE_8)
+        (width, height), _ = cv2.getTextSize(name, _FONT, 0.6, 2)
+        direction = (tip - origin) / max(float(np.linalg.norm(tip - origin)), 1e-6)
+        center = tip + (6 + max(width, height) / 2) * direction  # beyond the tip, off the line
+        label = (int(round(center[0] - width / 2)), int(round(center[1] + height / 2)))
+        cv2.putText(image, name, label, _FONT, 0.6, OUTLINE_COLOR, 4, cv2.LINE_AA)  # readable on any points
+        cv2.putText(image, name, label, _FONT, 0.6, color, 2, cv2.LINE_AA)
 
 
 # --------------------------------------------------------------------------------------------

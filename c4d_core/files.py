@@ -218,3 +218,27 @@ def json_default(value: Any) -> Any:
 def write_json(path: str | os.PathLike, value: Any, indent: int = 2) -> Path:
     """Write `value` as indented JSON (numpy values allowed) to `path` atomically."""
     return write_text(path, json.dumps(value, indent=indent, default=json_default) + "\n")
+
+
+# What an existing path that is no regular file is, by pathlib's tests (each follows symbolic links).
+_NOT_REGULAR = ((Path.is_dir, "a folder"), (Path.is_fifo, "a named pipe"), (Path.is_socket, "a socket"),
+                (Path.is_char_device, "a character device"), (Path.is_block_device, "a block device"))
+
+
+def special_file_kind(path: str | os.PathLike) -> str | None:
+    """What `path` is where it exists but is no regular file ("a folder", "a named pipe", "a socket",
+    "a character device", "a block device"); None for a regular file (or a symbolic link to one)
+    and for a path that does not exist or cannot be examined."""
+    path = Path(path)
+    return next((kind for test, kind in _NOT_REGULAR if test(path)), None)
+
+
+def check_regular_file(path: str | os.PathLike, what: str, hint: str) -> Path:
+    """`path` as a Path, or a `UserError` ("<what> PATH is a named pipe, not a regular file; <hint>")
+    where it exists but is no regular file: opened, a named pipe waits for a writer forever and a
+    character device such as /dev/zero never ends. Every reader of a user's input file calls this
+    before opening it. A missing path passes: the reader's own open names it as missing."""
+    kind = special_file_kind(path)
+    if kind is not None:
+        raise UserError(f"{what} {os.fspath(path)} is {kind}, not a regular file; {hint}")
+    return Path(path)

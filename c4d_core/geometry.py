@@ -158,6 +158,24 @@ def intrinsics_from_lens(focal_mm: float, sensor_mm: float, height: int, width: 
     return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
+def intrinsics_problem(intrinsics: np.ndarray) -> str | None:
+    """Why camera matrices K (T,3,3) in pixels are not all a pinhole camera's
+    [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with finite entries and focal lengths fx, fy > 0 (the
+    cameras `unproject` inverts: any other K is singular, mirrored or no camera), in words naming
+    the first bad frame; None if every frame's K is one."""
+    K = np.asarray(intrinsics, np.float64)
+    if K.ndim != 3 or K.shape[1:] != (3, 3):
+        return f"intrinsics have shape {K.shape}, not (T,3,3)"
+    pinhole = (np.isfinite(K).all(axis=(1, 2)) & (K[:, 0, 0] > 0) & (K[:, 1, 1] > 0)
+               & (K[:, 1, 0] == 0) & (K[:, 2] == [0.0, 0.0, 1.0]).all(axis=1))
+    bad = np.flatnonzero(~pinhole)
+    if not len(bad):
+        return None
+    return (f"the intrinsics of {len(bad)} of {len(K)} frames (first frame {bad[0]}: "
+            f"{np.round(K[bad[0]], 3).tolist()}) are no camera matrix [[fx, s, cx], [0, fy, cy], "
+            "[0, 0, 1]] with finite entries and focal lengths fx, fy > 0")
+
+
 def project(points_world: np.ndarray, intrinsics: np.ndarray, cam_to_world: np.ndarray):
     """World points (...,3) -> pixels (...,2) as (x, y), and z-depth (...).
 

@@ -5,16 +5,29 @@ of unknown origin can run any command. The TAP-Vid pickles are dicts and lists o
 bytes (JPEG frames) and plain values; `read_data_pickle` unpickles with exactly the globals those
 need (`ALLOWED_GLOBALS`: numpy's array and scalar reconstructors, `numpy.dtype`, and the bytes
 decoder protocol-2 pickles use) and refuses any other in one line naming it.
+
+Allowed calls can still ask for memory: `_reconstruct(ndarray, shape, dtype)` allocates `shape`
+at once, and a file naming a 10^13-element shape is 9 TiB of it. numpy itself always pickles an
+array as `_reconstruct(ndarray, (0,), ...)`, then fills it with bytes the file carries (its
+`__setstate__` checks their length), so an honest array is never larger than the file holding it:
+a reconstruct call asking for more bytes than the file has is refused before allocating. A file
+that names one bytes object many times (the pickle memo) gets arrays that share it: numpy views
+the bytes of a pickled array instead of copying them.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import pickle
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
+
+import numpy as np
 
 from c4d_core.errors import UserError
+from c4d_core.files import check_regular_file
+from c4d_core.system import gib
 
 # (module, name) -> why it is safe: each builds a value from plain data and calls nothing else.
 ALLOWED_GLOBALS = frozenset({
@@ -30,13 +43,38 @@ ALLOWED_GLOBALS = frozenset({
 })
 
 
+class _TooLarge(pickle.UnpicklingError):
+    """An array reconstructor call asking for more bytes than the whole file holds."""
+
+
+def _bounded(reconstruct: Callable, limit: int) -> Callable:
+    """numpy's `_reconstruct(subtype, shape, dtype)`, refusing (`_TooLarge`) a shape of more than
+    `limit` bytes before anything is allocated."""
+
+    def build(subtype, shape, dtype):
+        dims = shape if isinstance(shape, (tuple, list)) else (shape,)
+        size = math.prod(int(n) for n in dims) * np.dtype(dtype).itemsize
+        if size > limit:
+            raise _TooLarge(f"an array of shape {tuple(dims)} and dtype {np.dtype(dtype)} "
+                            f"({gib(size)})")
+        return reconstruct(subtype, shape, dtype)
+
+    return build
+
+
 class _DataUnpickler(pickle.Unpickler):
-    """An unpickler that resolves only `ALLOWED_GLOBALS`."""
+    """An unpickler that resolves only `ALLOWED_GLOBALS`, whose array reconstructors build no
+    array of more than `limit` bytes."""
+
+    def __init__(self, file, limit: int):
+        super().__init__(file)
+        self.limit = limit
 
     def find_class(self, module: str, name: str) -> Any:
         if (module, name) not in ALLOWED_GLOBALS:
             raise pickle.UnpicklingError(f"refused global {module}.{name}")
-        return super().find_class(module, name)
+        found = super().find_class(module, name)
+        return _bounded(found, self.limit) if name == "_reconstruct" else found
 
 
 def read_data_pickle(path: str | os.PathLike, what: str, hint: str) -> Any:
@@ -44,12 +82,17 @@ def read_data_pickle(path: str | os.PathLike, what: str, hint: str) -> Any:
 
     `what` names the file in messages ("TAP-Vid pickle"), `hint` says what to do instead. Raises
     `UserError` for a file that names any other class or function (it could run code), and for
-    one that is unreadable, cut short or no pickle at all.
+    one that is unreadable, cut short or no pickle at all, and for a path that is no regular file
+    (a named pipe, a device), before opening it.
     """
-    path = Path(path)
+    path = check_regular_file(path, what, hint)
     try:
         with open(path, "rb") as fh:
-            return _DataUnpickler(fh).load()
+            return _DataUnpickler(fh, os.fstat(fh.fileno()).st_size).load()
+    except _TooLarge as exc:
+        raise UserError(f"{what} {str(path)!r} asks for {exc}, more than its "
+                        f"{os.path.getsize(path)} bytes can carry: it is damaged or was not "
+                        f"written by numpy, and was not read; {hint}") from exc
     except pickle.UnpicklingError as exc:
         if str(exc).startswith("refused global"):
             raise UserError(f"{what} {str(path)!r} holds Python objects other than arrays and plain "

@@ -217,6 +217,12 @@ SEED = integer(0, 2**32 - 1)
 COUNT, POSITIVE = integer(1), integer(0)  # at least one; zero or more
 PIXELS = number(0.0)
 ONE_CYCLE_STEPS = integer(3)  # DynPT's OneCycle schedule: a warm-up of 2 steps and an annealing one
+# An object's candidate poses are drawn at once, (tries, hull vertices, 3) float64: 1000 tries of
+# pybullet_data's largest hull (3,632 vertices) take 87 MB (Kubric tries 100).
+PLACEMENT_TRIES = integer(1, 1000)
+# Sub-frame renders averaged into one uint8 frame: from 256 on, one render moves the mean by less
+# than one level.
+BLUR_SAMPLES = integer(1, 256)
 
 # --- the rules of every group, key by key --------------------------------------------------------
 RULES: dict[str, dict[str, Rule]] = {
@@ -230,7 +236,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "objects.num_static": interval(0, item="int"), "objects.num_tossed": interval(0, item="int"),
         "objects.scale": interval(above=0), "objects.static_region": box(),
         "objects.tossed_region": box(), "objects.tossed_velocity": box(),
-        "objects.placement_tries": COUNT, "objects.density": number(above=0),
+        "objects.placement_tries": PLACEMENT_TRIES, "objects.density": number(above=0),
         "objects.friction": number(0.0), "objects.restitution": fraction(),
         "objects.settle_friction": number(0.0), "objects.settle_restitution": fraction(),
         "objects.uv_tiles": interval(above=0),
@@ -250,7 +256,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "lights.shadows": flag(), "lights.shadow_map_size": integer(1, 4 * MAX_SIDE),
         "lights.shadow_extent": number(above=0),
         "backdrop.dome_radius": number(above=0), "backdrop.floor_tile": number(above=0),
-        "blur.max_shutter": number(0.0), "blur.samples_per_frame": COUNT, "blur.max_samples": COUNT,
+        "blur.max_shutter": number(0.0), "blur.samples_per_frame": BLUR_SAMPLES,
+        "blur.max_samples": BLUR_SAMPLES,
         "layers.normal": flag(), "layers.object_coordinates": flag(), "layers.instances": flag(),
         "layers.events": flag(),
         "tracks.num_points": COUNT, "tracks.query_stride": COUNT, "tracks.grid_stride": COUNT,

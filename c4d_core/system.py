@@ -1,10 +1,11 @@
 """The system under the project: library checks with messages that say how to fix them, the
-CPU threads every command uses (`configure_threads`) and how freed memory is kept
-(`prepare_allocator`)."""
+CPU threads every command uses (`configure_threads`), how freed memory is kept
+(`prepare_allocator`) and how much is still available (`available_memory`)."""
 
 from __future__ import annotations
 
 import ctypes.util
+import logging
 import math
 import os
 import sys
@@ -12,6 +13,8 @@ import time
 from pathlib import Path
 
 from c4d_core.errors import UserError
+
+log = logging.getLogger(__name__)
 
 EGL_HELP = (
     "install Mesa's EGL and GL drivers, e.g. on Debian/Ubuntu: "
@@ -136,6 +139,7 @@ _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS
 _override: dict[str, int] = {}
 # OMP_NUM_THREADS as the user set it before this process changed it (None: not set).
 _USER_OMP = os.environ.get("OMP_NUM_THREADS")
+AUTOMATIC = "threads from the usable cores (--threads N chooses them)"  # without OMP_NUM_THREADS
 
 
 # Below this many busy cores (of those this process may use) no other CPU-bound process runs
@@ -152,8 +156,11 @@ def prepare_openmp(busy: float | None = None) -> str:
     parallel regions ("default"): sleeping there made the demo's small training step 1.35-1.65x
     slower. On a machine busy with other CPU-bound processes they sleep ("PASSIVE"): a spinning
     thread that waits for a peer the OS has descheduled burns the core that peer needs, which made
-    training steps 4-10x slower (docs/perf/threads.md).
+    training steps 4-10x slower (docs/perf/threads.md). An OMP_NUM_THREADS that is not a
+    positive integer is dropped with a warning (`positive_variable`) before OpenMP reads it.
     """
+    if positive_variable("OMP_NUM_THREADS", os.environ.get("OMP_NUM_THREADS"), AUTOMATIC) is None:
+        os.environ.pop("OMP_NUM_THREADS", None)  # else OpenMP complains in two lines as it loads
     if "OMP_WAIT_POLICY" in os.environ:
         return os.environ["OMP_WAIT_POLICY"]
     if busy is None:
@@ -215,8 +222,34 @@ def available_cpus(cgroup_root: Path = Path("/sys/fs/cgroup")) -> int:
     quota = _cgroup_cpu_limit(cgroup_root)
     if quota is not None:
         cpus = min(cpus, math.ceil(quota))
-    ranks = int(os.environ.get("LOCAL_WORLD_SIZE", "1") or 1)
-    return max(1, cpus // max(ranks, 1))
+    ranks = positive_variable("LOCAL_WORLD_SIZE", os.environ.get("LOCAL_WORLD_SIZE"),
+                              "1 process on this machine") or 1
+    return max(1, cpus // ranks)
+
+
+def available_memory(meminfo: Path = Path("/proc/meminfo"),
+                     cgroup_root: Path = Path("/sys/fs/cgroup")) -> int | None:
+    """Bytes this process can still allocate without swapping: the kernel's MemAvailable, capped
+    by what a cgroup memory limit leaves (v2 `memory.max` less `memory.current`, v1
+    `memory.limit_in_bytes` less `memory.usage_in_bytes`); None where none of them can be read."""
+    found = []
+    try:
+        fields = dict(line.split(":", 1) for line in meminfo.read_text().splitlines() if ":" in line)
+        found.append(int(fields["MemAvailable"].split()[0]) * 1024)  # kB
+    except (OSError, ValueError, KeyError, IndexError):
+        pass
+    for limit, usage in (("memory.max", "memory.current"),
+                         ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes")):
+        try:
+            found.append(int((cgroup_root / limit).read_text()) - int((cgroup_root / usage).read_text()))
+        except (OSError, ValueError):  # missing, or "max": no limit
+            pass
+    return max(0, min(found)) if found else None
+
+
+def gib(size: float) -> str:
+    """A byte count in GiB for a message: '9313.2 GiB'."""
+    return f"{size / 2**30:.1f} GiB"
 
 
 def set_thread_override(threads: int | None) -> None:
@@ -245,10 +278,28 @@ def configure_threads(workers: int = 0, threads: int | None = None) -> int:
 
 
 def _user_omp_threads() -> int | None:
-    try:
-        return max(1, int(_USER_OMP)) if _USER_OMP else None
-    except ValueError:
+    return positive_variable("OMP_NUM_THREADS", _USER_OMP, AUTOMATIC)
+
+
+_warned: set[tuple[str, str]] = set()  # (variable, value) pairs already warned about
+
+
+def positive_variable(name: str, text: str | None, instead: str) -> int | None:
+    """Environment variable `name`'s value `text` as a positive integer; None where it is unset
+    or empty, and where it is not one, with a one-line warning (once per value) that it is
+    ignored and `instead` is used."""
+    if not text:
         return None
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value > 0:
+        return value
+    if (name, text) not in _warned:
+        _warned.add((name, text))
+        log.warning("%s=%r is not a positive integer; ignored, using %s", name, text, instead)
+    return None
 
 
 def init_worker_threads(*_args) -> None:

@@ -20,8 +20,9 @@ import cv2
 import numpy as np
 
 from c4d_core.errors import UserError
-from c4d_core.files import atomic_path
+from c4d_core.files import atomic_path, check_regular_file
 from c4d_core.schema import MAX_SIDE, MIN_SIDE
+from c4d_core.sniff import file_format
 
 log = logging.getLogger(__name__)
 
@@ -31,16 +32,23 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 _VIDEO_CODECS = {".mp4": "mp4v", ".webm": "VP80", ".avi": "MJPG"}
 
 
+def encode_image(image: np.ndarray, suffix: str) -> bytes:
+    """The file bytes of an RGB uint8 (H,W,3) or grey (H,W) image in the format of `suffix`
+    ('.png', '.jpg')."""
+    image = np.asarray(image, np.uint8)
+    bgr = image[..., ::-1] if image.ndim == 3 else image
+    ok, data = cv2.imencode(suffix, np.ascontiguousarray(bgr))
+    if not ok:
+        raise ValueError(f"OpenCV cannot encode {suffix!r} images; use .png or .jpg")
+    return data.tobytes()
+
+
 def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     """Write an RGB uint8 (H,W,3) or grey (H,W) image; format from the extension (png, jpg)."""
     path = Path(path)
-    image = np.asarray(image, np.uint8)
-    bgr = image[..., ::-1] if image.ndim == 3 else image
-    ok, data = cv2.imencode(path.suffix, np.ascontiguousarray(bgr))
-    if not ok:
-        raise ValueError(f"OpenCV cannot encode {path.suffix!r} images; use .png or .jpg")
+    data = encode_image(image, path.suffix)
     with atomic_path(path) as tmp:  # written by Python, so a disk error keeps its errno
-        tmp.write_bytes(data.tobytes())
+        tmp.write_bytes(data)
     return path
 
 
@@ -160,6 +168,7 @@ def _read_folder(folder: Path, stride: int, max_frames: int | None) -> list[np.n
     files = files[::stride][:max_frames]
     frames = []
     for f in files:
+        check_regular_file(f, "image", "remove it from the folder of frames")
         image = cv2.imread(str(f), cv2.IMREAD_COLOR)  # grey images come back as 3 channels
         if image is None:
             raise UserError(f"cannot decode image {str(f)!r} (corrupt or unsupported); fix or remove it")
@@ -171,8 +180,13 @@ def _read_folder(folder: Path, stride: int, max_frames: int | None) -> list[np.n
 
 
 def _read_file(path: Path, stride: int, max_frames: int | None) -> list[np.ndarray]:
+    check_regular_file(path, "video", "pass a video file or a folder of frames")
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
+        kind = file_format(path)
+        if kind is not None and not kind.endswith(("video", "image")):  # a file of another kind
+            raise UserError(f"{str(path)!r} is not a video: it is {kind}; pass a video file (mp4, "
+                            "avi, ...) or a folder of frames")
         raise UserError(f"cannot open video {str(path)!r} (corrupt, truncated or an unsupported format); "
                         "re-encode it as .mp4 or pass a folder of frames")
     reported = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))

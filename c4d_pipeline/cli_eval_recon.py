@@ -13,7 +13,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from c4d_core.errors import UserError
 from c4d_core.files import write_json
+from c4d_core.ownership import JSON_KEY, check_file
 from c4d_pipeline.eval_datasets import LOADERS
 from c4d_pipeline.eval_recon import evaluate, evaluate_sequence, pick_scene, pick_sequence
 from c4d_pipeline.outputs import read_reconstruction
@@ -34,6 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.max_depth is not None and not args.max_depth > 0:  # NaN too
+        raise UserError(f"--max-depth must be a positive depth (ground truth at or beyond it is "
+                        f"ignored), got {args.max_depth:g}; leave it out to use every depth")
+    out = check_file(Path(args.out) if args.out else Path(args.pred) / "eval_recon.json",
+                     "eval-recon", args.overwrite)
     recon = read_reconstruction(args.pred)
     if args.dataset is not None:
         sequence = pick_sequence(args.dataset, args.root, args.sequence)
@@ -43,8 +50,7 @@ def run(args: argparse.Namespace) -> int:
         scene = pick_scene(args.gt, args.scene_index)
         result = {"pred": str(args.pred), "gt": str(args.gt), "scene_index": args.scene_index,
                   "scene_meta": scene.meta, **evaluate(recon, scene, args.max_depth)}
-    out = Path(args.out) if args.out else Path(args.pred) / "eval_recon.json"
-    write_json(out, result)
+    write_json(out, {JSON_KEY: "eval-recon", **result})
     print(f"frames {len(result['frame_indices'])} ({result['frame_indices_from']})")
     if "pose" in result:
         pose = result["pose"]

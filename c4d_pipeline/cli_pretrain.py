@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 
 from c4d_core.config import add_training_arguments, training_config
+from c4d_core.ownership import output_folder
 from c4d_core.system import configure_threads
 
 
@@ -22,5 +23,6 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = training_config("pointmaps", args)
     configure_threads(threads=cfg.threads)
-    train_pointmap_net(cfg, resume=args.resume)
+    with output_folder(cfg.train.out_dir, "pretrain-pointmaps", args.overwrite):
+        train_pointmap_net(cfg, resume=args.resume)
     return 0

@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from c4d_core.config import flag_overrides, load_config, to_yaml
+from c4d_core.config import flag_overrides, load_config, refuse_override_as_positional, to_yaml
 from c4d_core.errors import UserError
 from c4d_core.files import staged_folder, write_text
+from c4d_core.ownership import check_folder, mark_folder
 from c4d_core.system import configure_threads
 
 log = logging.getLogger("c4d.run")
@@ -41,8 +42,6 @@ RUN_FLAGS = {"pointmaps": "pointmaps.checkpoint", "tracker": "tracker.checkpoint
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("video", help="video file (mp4, avi, ...) or folder of frames (sorted by name)")
     parser.add_argument("--out", required=True, help="output folder (created; files of the C4D output table)")
-    parser.add_argument("--overwrite", action="store_true", help="replace the reconstruction "
-                        "already in --out (kept until the new one is complete)")
     parser.add_argument("--pointmaps", metavar="CKPT", help="DUSt3R / MASt3R / MonST3R checkpoint (.pth) "
                         "for the pairwise pointmaps (key pointmaps.checkpoint; required)")
     parser.add_argument("--tracker", metavar="CKPT", help="DynPT checkpoint from `c4d train`; without it "
@@ -67,6 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def load_run_config(args: argparse.Namespace):
     """The c4d config of a run: preset, --config files, then key=value overrides and the flags."""
+    refuse_override_as_positional(args.video, "VIDEO", args.overrides,
+                                  "`c4d run VIDEO --pointmaps CKPT --out DIR [key=value ...]`")
     flags = {key: getattr(args, dest, None) for dest, key in RUN_FLAGS.items()}
     overrides = [*args.overrides, *flag_overrides(flags, args.overrides)]
     return load_config("c4d", args.preset, config_files=args.config, overrides=overrides)
@@ -80,17 +81,9 @@ def _check_file(path: str, what: str, flag: str) -> None:
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
-    """`UserError` unless `out` is new, an empty folder, or (with --overwrite) a reconstruction."""
-    from c4d_pipeline.outputs import is_reconstruction
-
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {str(out)!r} is a file; give a folder")
-    if not out.is_dir() or not any(out.iterdir()):
-        return
-    if not is_reconstruction(out):
-        raise UserError(f"--out {str(out)!r} already holds files that are not a reconstruction; "
-                        "give a new or empty folder")
-    if not overwrite:
+    """`UserError` unless `out` is new, an empty folder, or (with --overwrite) a reconstruction or
+    another c4d command's output (`c4d_core.ownership`)."""
+    if check_folder(out, "run", overwrite) == "run" and not overwrite:
         raise UserError(f"--out {str(out)!r} already holds a reconstruction; pass --overwrite to "
                         "replace it (it is kept until the new one is complete) or give another folder")
 
@@ -115,10 +108,12 @@ def run(args: argparse.Namespace) -> int:
     from c4d_pipeline.pipeline import reconstruct
     from c4d_pipeline.scene_graph import graph_from_config
     from c4d_pipeline.video_input import load_video_input
+    from dynpt.device import device_for
 
     # 1. Everything the user named, checked before any heavy work.
     cfg = load_run_config(args)
     configure_threads(threads=cfg.threads)  # for the networks, tracking and flow alike
+    device_for(cfg.device)  # a GPU this machine lacks: one line here, not deep inside torch
     if not Path(args.video).exists():
         raise UserError(f"video {args.video!r} does not exist; pass a video file or a folder of frames")
     if not cfg.pointmaps.checkpoint:
@@ -161,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
 
     # 3 and 4 write into OUT.partial, which becomes OUT when complete (an old OUT stays till then).
     with staged_folder(out) as stage:
+        mark_folder(stage, "run")
         write_text(stage / "config.yaml", to_yaml(cfg))  # every input read: what runs now
 
         # 3. Tracks on the same frames.

@@ -24,8 +24,8 @@ from tqdm import tqdm
 
 from c4d_core.errors import UserError
 from c4d_pipeline.pointmaps import PairwisePointmaps, sanitize
-from dynpt.device import (autocast, bf16_supported, free_memory, pair_batch_size, pin_memory,
-                          pointmap_autocast_dtype)
+from dynpt.device import (autocast, bf16_supported, device_for, free_memory, pair_batch_size,
+                          pin_memory, pointmap_autocast_dtype)
 from dynpt.dust3r.net import Dust3rNet, load_dust3r
 
 log = logging.getLogger(__name__)
@@ -58,7 +58,7 @@ class Dust3rPointmaps:
 
     def __init__(self, net: Dust3rNet, device: str | torch.device | None = None, batch_size: int = 0,
                  progress: bool = False, precision: str = "fp32"):
-        self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.device = device_for(device)
         self.net = net.to(self.device).eval()
         self.amp_dtype = pointmap_autocast_dtype(self.device.type, precision, bf16_supported(self.device))
         if batch_size < 0:

@@ -137,10 +137,17 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, mode: str = "scale_shift", m
     if pred.shape != gt.shape:
         raise UserError(f"depth metrics need equal shapes, got prediction {pred.shape} and ground truth {gt.shape}; resize first")
     valid = np.isfinite(pred) & np.isfinite(gt) & (gt > 0)
-    if max_depth is not None:
-        valid &= gt < max_depth
     if valid.sum() < 2:
-        raise UserError("fewer than 2 valid depth pixels (finite, ground truth > 0); check the depth maps")
+        which = "reconstruction's" if np.isfinite(gt).any() and (gt > 0).any() else "ground truth's"
+        raise UserError(f"fewer than 2 depth pixels where both are valid (finite, ground truth > 0); "
+                        f"the {which} depth maps hold almost none")
+    if max_depth is not None:
+        kept = valid & (gt < max_depth)
+        if kept.sum() < 2:
+            raise UserError(f"--max-depth {max_depth:g} leaves fewer than 2 depth pixels: the ground "
+                            f"truth's depth is {gt[valid].min():.3g} .. {gt[valid].max():.3g}; raise "
+                            "it or leave it out")
+        valid = kept
     p, g = pred[valid].astype(np.float64), gt[valid].astype(np.float64)
     scale, shift = fit_depth_alignment(p, g, mode)
     p = np.maximum(scale * p + shift, 1e-5)

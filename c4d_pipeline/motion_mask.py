@@ -14,7 +14,9 @@ C4D's correspondence-guided mask, for every directed pair (t, t') of the scene g
      are not judged (their flow is unreliable) unless `judge_out_of_view`;
   5. the mask of frame t is the union over all pairs (t, t') of the graph (optionally only
      those with |t - t'| <= `max_pair_offset`, for flows that fail on distant frames).
-Fallbacks, each logged once per call and listed in `MotionMasks.pair_info`:
+Fallbacks, listed in `MotionMasks.pair_info` and logged in one line per call (once per process
+for the same pairs with the same static-point counts: two runs on one video, as `c4d demo`'s
+C4D and GA only, compute the same masks):
   - fewer than `min_static_points` static points (or LMedS fails on them): the fundamental
     matrix is estimated by LMedS from a regular grid of ALL flow correspondences of the pair,
     which stays right while less than half of the frame moves;
@@ -47,6 +49,8 @@ from c4d_core.geometry import pixel_grid, project, unproject_depth_map
 
 log = logging.getLogger(__name__)
 Pair = tuple[int, int]
+LISTED_PAIRS = 8  # a warning names at most this many pairs, then "..."
+_reported: set[tuple] = set()  # the pair infos whose fallbacks were logged in this process
 
 
 @dataclass(frozen=True)
@@ -238,11 +242,15 @@ def correspondence_motion_masks(
         pair_masks.append(mask)
         infos.append({"pair": [int(i), int(j)], **info})
     fallbacks = [tuple(f["pair"]) for f in infos if f["method"] in ("all-flow", "failed")]
-    if fallbacks:
+    seen = tuple((tuple(f["pair"]), f["static_points"]) for f in infos)
+    if fallbacks and seen not in _reported:
+        _reported.add(seen)
+        listed = ", ".join(f"({i}, {j})" for i, j in fallbacks[:LISTED_PAIRS])
         log.warning(
             "%d of %d pairs had fewer than %d static points or no LMedS solution; their fundamental "
-            "matrix came from all flow correspondences (or the pair was skipped): %s",
-            len(fallbacks), len(pairs), cfg.min_static_points, fallbacks[:5],
+            "matrix came from all flow correspondences (or the pair was skipped): %s%s",
+            len(fallbacks), len(pairs), cfg.min_static_points, listed,
+            ", ..." if len(fallbacks) > LISTED_PAIRS else "",
         )
     masks = np.zeros((num_frames, *flows.shape[1:3]), bool)  # (T,H,W)
     for mask, info in zip(pair_masks, infos):

@@ -25,6 +25,7 @@ would no longer be the one docs/FORMAT.md describes.
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,8 +82,9 @@ def _save_png(path: Path, image: np.ndarray) -> None:
 
 
 def _save_npy(path: Path, array: np.ndarray) -> None:
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.save(fh, array)
+    buffer = io.BytesIO()  # numpy's own writes to a file report a full disk without an errno
+    np.save(buffer, array)
+    write_bytes(path, buffer.getvalue())
 
 
 def _save_npz(path: Path, **arrays: np.ndarray) -> None:
@@ -172,10 +174,11 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_str
                          ply_static_frame_stride: int = 5, ply_min_confidence: float = 1.0) -> Path:
     """Write every file of the output table into `out_dir` (created); returns its path."""
     out = Path(out_dir)
+    depth_rgb = colorize_depth(rec.depth)  # one colour range for the whole video, not per frame
     for t in range(rec.num_frames):
         _save_png(out / "frames" / f"{t:06d}.png", rec.frames[t])
         _save_npy(out / "depth" / f"{t:06d}.npy", rec.depth[t].astype(np.float32))
-        _save_png(out / "depth" / f"{t:06d}.png", colorize_depth(rec.depth[t]))
+        _save_png(out / "depth" / f"{t:06d}.png", depth_rgb[t])
         _save_png(out / "masks" / f"{t:06d}.png", (rec.masks[t] * 255).astype(np.uint8))
     write_text(out / "poses_tum.txt", tum_lines(rec.cam_to_world.astype(np.float64), rec.timestamps))
     _save_npy(out / "intrinsics.npy", rec.intrinsics.astype(np.float32))

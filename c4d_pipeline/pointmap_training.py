@@ -216,8 +216,9 @@ def train_pointmap_net(cfg, resume: bool = False) -> dict:
             line = {"step": step, **stats, "lr": schedule.get_last_lr()[0],
                     "seconds": round(time.time() - started, 1)}
             append_line(out / "log.jsonl", json.dumps(line))
-            log.info("pointmaps step %d/%d  loss %.4f  regression %.4f", step, steps,
-                     stats["loss"], float(np.mean(recent)))
+            log.info("pointmaps step %d/%d  loss %.4f  regression %.4f (this step, as in log.jsonl; "
+                     "mean of the last %d steps %.4f)", step, steps, stats["loss"],
+                     stats["regression"], len(recent), float(np.mean(recent)))
             recent = []
         if step % int(cfg.train.ckpt_every) == 0 or step == stop:
             state = {"model": net.state_dict(), "optimizer": optimizer.state_dict(),

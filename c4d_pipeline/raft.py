@@ -28,6 +28,7 @@ import torch.nn.functional as F
 
 from c4d_core.errors import UserError
 from c4d_pipeline.flow_inputs import check_flow_inputs
+from dynpt.device import device_for
 from dynpt.torch_files import read_tensor_file
 
 log = logging.getLogger(__name__)
@@ -267,7 +268,7 @@ class RaftFlow:
     """
 
     def __init__(self, path: str | Path, device=None, iters: int = 20, batch_size: int = 4):
-        self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.device = device_for(device)
         self.model = load_raft(path, iters).to(self.device)
         self.batch_size = batch_size
 

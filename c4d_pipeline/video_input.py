@@ -12,6 +12,7 @@ The resize-and-crop is also returned as an intrinsics transform, so ground truth
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from PIL import Image
 from c4d_core.errors import UserError
 from c4d_core.video import read_video, video_fps
 
+log = logging.getLogger(__name__)
 PATCH = 16
 
 
@@ -51,6 +53,9 @@ def plan_preprocessing(source_hw: tuple[int, int], size: int, square_ok: bool = 
     H, W = source_hw
     if size < PATCH:
         raise UserError(f"network image size {size} is smaller than one {PATCH}-pixel patch; use 512 or 224")
+    if min(H, W) < PATCH:  # enlarged, a few flat colours: nothing to match (the optimisation diverges)
+        raise UserError(f"the video's frames are {W}x{H} pixels, smaller than one {PATCH}-pixel "
+                        f"patch of the pointmap network; give frames of at least {PATCH}x{PATCH} pixels")
     # The long side's new length first, then each side as round(side * long / max(H, W)), in this
     # order of operations, as dust3r's: at exact .5 ties (a 402x384 image at 224) another order
     # rounds the other way and the resized image gains a column.
@@ -112,4 +117,9 @@ def load_video_input(path: str | Path, size: int = 512, stride: int = 1, max_fra
     DUSt3R preprocessing for network size `size`. Bad or unreadable input raises `UserError`."""
     raw = read_video(path, stride=stride, max_frames=max_frames)  # (T,H,W,3) uint8
     frames, plan = dust3r_resize(raw, size, square_ok)
+    (H, W), (rh, rw), (x0, y0), (oh, ow) = plan.source_hw, plan.resized_hw, plan.crop_xy, plan.output_hw
+    if size != 224 and rh == rw and not square_ok:
+        log.info("square %dx%d frames cropped to 4:3: the source's box x %.0f-%.0f, y %.0f-%.0f, "
+                 "network frames %dx%d (DUSt3R's rule for a square input at size %d)", W, H,
+                 x0 * W / rw, (x0 + ow) * W / rw, y0 * H / rh, (y0 + oh) * H / rh, ow, oh, size)
     return VideoInput(frames, np.arange(len(raw)) * stride, plan, Path(path), video_fps(path))

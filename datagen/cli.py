@@ -8,7 +8,8 @@ after a crash (or with more tasks of a job array) only generates the missing sha
 identity (config, counts, generator version) is kept in `OUT/dataset-{split}.json`, the resolved
 config also in `OUT/config-{split}.yaml`; a rerun into the same directory with a different
 config is refused once a shard of the first is complete (before that the folder holds no data of
-it and the new settings replace the old). Every value is range-checked when the config loads,
+it and the new settings replace the old), also where the dataset file was deleted: each scene's
+meta carries its seed and config digest. Every value is range-checked when the config loads,
 before anything is created.
 """
 
@@ -36,11 +37,14 @@ import datagen
 from c4d_core.config import available_presets, flag_overrides, load_config, to_dict, to_yaml
 from c4d_core.errors import UserError
 from c4d_core.files import make_folder, write_json, write_text
+from c4d_core.ownership import output_folder
 from c4d_core.schema import RULES
-from c4d_core.system import configure_threads, init_worker_threads, require_egl
+from c4d_core.system import (available_memory, configure_threads, gib, init_worker_threads,
+                              require_egl)
 from datagen.codecs import FORMAT_VERSION
-from datagen.jobs import SHARD_PATTERN, ShardPlan, resolve_task
-from datagen.shards import DATASET_FILE, KEY_PATTERN, ShardWriter, encode_scene, scene_key
+from datagen.jobs import SHARD_PATTERN, ShardPlan, config_digest, resolve_task
+from datagen.shards import (DATASET_FILE, KEY_PATTERN, ShardWriter, encode_scene, first_scene_meta,
+                            scene_key)
 
 log = logging.getLogger(__name__)
 
@@ -151,8 +155,29 @@ def claim_directory(out: Path, record: dict[str, Any], plan: ShardPlan) -> None:
                 "or choose a new --out"
             )
         return
+    if holds_data:  # the dataset file was deleted: the shards' own scenes tell their dataset
+        _check_shards_match(out, record, plan)
     write_json(path, record)
     write_text(out / f"config-{record['split']}.yaml", to_yaml(record["config"]))
+
+
+def _check_shards_match(out: Path, record: dict[str, Any], plan: ShardPlan) -> None:
+    """Refuse to resume shards in `out` whose first scene has another seed or config than
+    `record`: they would pass as complete shards of this dataset and mix two generations."""
+    digest = config_digest(record["config"])
+    for shard in sorted(out.glob(f"{plan.split}-*.tar")):
+        meta = first_scene_meta(shard)
+        if "seed" in meta and meta["seed"] != record["seed"]:
+            made = f"with seed {meta['seed']} (this run: seed {record['seed']})"
+        elif "config_digest" in meta and meta["config_digest"] != digest:
+            made = (f"with another config (config_digest {meta['config_digest']}, this run's "
+                    f"{digest})")
+        else:
+            continue
+        raise UserError(
+            f"{shard} was generated {made} and {DATASET_FILE.format(split=plan.split)} is "
+            "missing; rerun with the shards' settings to resume them, or choose a new --out"
+        )
 
 
 # --- scene generation, in this process or in spawned workers ------------------------------------
@@ -164,11 +189,16 @@ _worker: dict[str, Any] = {}
 # exception is printed and dropped: the run then went on to the end with exit 0. The flag keeps
 # the interrupt, and the loops below check it between scenes and while waiting for a worker.
 _interrupted = threading.Event()
+# The pools of scene workers of this run, whose processes a second Ctrl-C kills.
+_pools: list[ProcessPoolExecutor] = []
 
 
 @contextmanager
 def _interrupt_flag() -> Iterator[None]:
-    """While inside: SIGINT sets `_interrupted` and raises KeyboardInterrupt (main thread only).
+    """While inside: the first SIGINT sets `_interrupted` and raises KeyboardInterrupt (main
+    thread only); the run then waits for the scenes its workers are rendering. A second SIGINT
+    kills the workers (`_kill_workers`), which ends that wait, and raises nothing: the cleanup it
+    would otherwise cut short (removing the partial shard) still runs.
 
     A process that ignores SIGINT (a job a shell started in the background) keeps ignoring it."""
     _interrupted.clear()
@@ -178,6 +208,9 @@ def _interrupt_flag() -> Iterator[None]:
         return
 
     def on_sigint(signum, frame):
+        if _interrupted.is_set():
+            _kill_workers()
+            return
         _interrupted.set()
         raise KeyboardInterrupt
 
@@ -191,6 +224,40 @@ def _interrupt_flag() -> Iterator[None]:
 def _check_interrupt() -> None:
     if _interrupted.is_set():
         raise KeyboardInterrupt
+
+
+def _kill_workers() -> None:
+    """Kill the processes of every pool in `_pools` (the scenes they render are lost; their shard
+    is not written); each pool then counts as broken and stops waiting for them."""
+    for pool in _pools:
+        # the pool's own processes: no public way to reach them before Python 3.14 (kill_workers)
+        for process in list((pool._processes or {}).values()):
+            process.kill()
+
+
+@contextmanager
+def _stoppable(pool: ProcessPoolExecutor) -> Iterator[ProcessPoolExecutor]:
+    """`pool`, shut down on leaving (waiting for its running scenes), its workers killed by a
+    second Ctrl-C until then."""
+    _pools.append(pool)
+    try:
+        with pool:
+            yield pool
+    finally:
+        _pools.remove(pool)
+
+
+@contextmanager
+def _sigint_held() -> Iterator[None]:
+    """SIGINT blocked in this thread while inside (one that comes is delivered on leaving). A
+    process started inside inherits the blocked signal (the mask survives exec, as for CPython's
+    own resource tracker): a terminal's Ctrl-C, sent to the whole process group, never reaches
+    it, and only this process decides what Ctrl-C does."""
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 def _exit_with_parent(parent: int) -> None:
@@ -236,6 +303,8 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
     Workers are spawned (forking a process that may hold an EGL context is unsafe); at most two
     scenes per worker wait in memory, so a slow scene never lets results pile up. A worker that
     dies (out of memory, a crash in the GL driver) ends the run with a `UserError`, not a hang.
+    Workers never see Ctrl-C (`_sigint_held`): at the first the run waits for the scenes they are
+    rendering, at a second it kills them (`_interrupt_flag`).
     """
     from datagen.assets import load_asset_library
 
@@ -245,10 +314,11 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
             yield _make_sample(cfg, index, assets)
         return
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
-                             initargs=(cfg, os.getpid())) as pool:
+    with _stoppable(ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
+                                        initargs=(cfg, os.getpid()))) as pool:
         todo = iter(indices)
-        pending = deque(pool.submit(_worker_sample, i) for i in islice(todo, 2 * workers))
+        with _sigint_held():  # the first `workers` submissions start the workers
+            pending = deque(pool.submit(_worker_sample, i) for i in islice(todo, 2 * workers))
         try:
             while pending:
                 future = pending.popleft()
@@ -263,6 +333,7 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
                     pending.append(pool.submit(_worker_sample, following))
                 yield sample
         except BrokenProcessPool as exc:
+            _check_interrupt()  # killed by a second Ctrl-C, not crashed
             raise UserError(
                 "a worker process died while generating a scene (out of memory or a crash in the "
                 "GL driver?); run the same command again with fewer --workers to resume"
@@ -270,6 +341,37 @@ def generate_samples(cfg, indices: list[int], workers: int) -> Iterator[dict[str
         finally:
             for future in pending:
                 future.cancel()  # the pool then only waits for the scenes already running
+            if _interrupted.is_set():
+                log.warning("interrupted: waiting for the %d worker(s) to finish the scene each is "
+                            "rendering (Ctrl-C again stops them at once); the shards already "
+                            "written are kept and rerunning the same command continues", workers)
+
+
+# What lowers each part of `datagen.generate.scene_memory`.
+MEMORY_KNOBS = {"frames": "--frames or --resolution", "tracks": "tracks.num_points or --frames",
+                "physics": "--frames, physics.step_rate or objects.num_static/num_tossed",
+                "placement": "objects.placement_tries or objects.num_static/num_tossed"}
+
+
+def check_memory(cfg, workers: int) -> None:
+    """`UserError` (before anything is allocated or written) where `workers` processes making
+    one scene of `cfg` each would need more memory than is available: the estimate
+    `scene_memory`, the biggest part and the knobs that lower it named."""
+    from datagen.generate import scene_memory
+
+    available = available_memory()
+    parts = scene_memory(cfg)
+    scene = sum(parts.values())
+    if available is None or workers * scene <= available:
+        return
+    biggest = max(parts, key=parts.get)
+    height, width = cfg.resolution
+    total = f", {gib(workers * scene)} for {workers} workers" if workers > 1 else ""
+    fewer = " (or fewer --workers)" if workers > 1 and scene <= available else ""
+    raise UserError(f"a scene of {cfg.frames} frames at {height}x{width} with "
+                    f"{cfg.tracks.num_points} tracks needs about {gib(scene)} of memory ({biggest} "
+                    f"{gib(parts[biggest])}){total}, more than the {gib(available)} available; "
+                    f"lower {MEMORY_KNOBS[biggest]}{fewer}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -279,11 +381,18 @@ def run(args: argparse.Namespace) -> int:
     task_index, num_tasks = resolve_task(args.task_index, args.num_tasks)
     if args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
+    check_memory(cfg, min(args.workers, args.num_scenes))
     require_egl()
     configure_threads(workers=args.workers if args.workers > 1 else 0)
     from datagen.assets import load_asset_library
 
     load_asset_library(cfg).check_backgrounds()  # fails early on unreadable folders and images
+    with output_folder(args.out, "datagen", args.overwrite):
+        return _generate(args, cfg, plan, task_index, num_tasks)
+
+
+def _generate(args: argparse.Namespace, cfg, plan: ShardPlan, task_index: int, num_tasks: int) -> int:
+    """The shards of task `task_index` of `num_tasks` that OUT (claimed) does not hold yet."""
     claim_directory(args.out, dataset_record(cfg, plan, str(args.preset)), plan)
 
     shards = plan.shards_of_task(task_index, num_tasks)
@@ -303,8 +412,7 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     with _interrupt_flag():
-        _write_shards(args.out, plan, todo, generate_samples(cfg, indices, workers), workers,
-                      len(indices))
+        _write_shards(args.out, plan, todo, generate_samples(cfg, indices, workers), len(indices))
     seconds = time.perf_counter() - start
     log.info("wrote %d scenes in %d shards to %s in %.0f s (%.2f scenes/s)",
              len(indices), len(todo), args.out, seconds, len(indices) / seconds)
@@ -312,7 +420,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_shards(out: Path, plan: ShardPlan, todo: list[int], samples: Iterator[dict[str, Any]],
-                  workers: int, total: int) -> None:
+                  total: int) -> None:
     """Write the scenes `samples` yields into the shards `todo` of `plan` in `out`, in order."""
     try:
         with tqdm(total=total, unit="scene", desc="datagen", dynamic_ncols=True) as bar:
@@ -324,11 +432,5 @@ def _write_shards(out: Path, plan: ShardPlan, todo: list[int], samples: Iterator
                         assert sample["__key__"] == scene_key(plan.split, index), "out of order"
                         writer.write(sample)
                         bar.update()
-    except KeyboardInterrupt:
-        if workers > 1:
-            log.warning("interrupted: waiting for the %d worker(s) to finish the scene each is "
-                        "rendering; the shards already written are kept and rerunning the same "
-                        "command continues", workers)
-        raise
     finally:
         samples.close()  # on an error or Ctrl-C: cancel queued scenes, shut the workers down

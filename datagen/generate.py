@@ -39,6 +39,38 @@ def scene_rngs(seed: int, scene_index: int) -> dict[str, np.random.Generator]:
             "tracks": np.random.default_rng(children[1])}
 
 
+# Peak bytes of one scene while `generate_scene` makes it and `datagen.shards.encode_scene`
+# encodes it, per unit it grows with: tracemalloc's peak over movi-e scenes of 8-400 frames, 8x8
+# to 256x256 pixels, 16-8192 tracks and 4-7 objects, rounded up. Per pixel of a frame: rgb,
+# depth, segmentation and flow both ways (31 B), the camera points while flow is made (12 B) and
+# the encoded sample (52 B measured); with `layers.normal` or `layers.object_coordinates` (made
+# together) their float32 (T,H,W,3) arrays and encoding too (50 B measured). Per track and frame:
+# `annotate.point_tracks`' float64 (N,T,4,4) poses and rotations (331 B measured). Per object and
+# physics step: the poses kept while stepping (488 B measured), and with `layers.events` every
+# contact point of every step (4,060 B more measured, objects at rest). Per object and placement
+# try: its candidate pose and the rotated hull's bounds (123 B measured).
+BYTES_PER = {"pixel": 64, "surface_pixel": 56, "track_frame": 384, "object_step": 512,
+             "contact_step": 4096, "placement_try": 128}
+
+
+def scene_memory(cfg) -> dict[str, int]:
+    """Bytes one scene of `cfg` takes at its peak (`BYTES_PER`), by what they hold: 'frames' (the
+    image layers of T frames of H x W pixels), 'tracks' (N tracks over T frames), 'physics' (the
+    most objects the config allows, K, at each of the (T+1) x step_rate / fps + 1 recorded steps)
+    and 'placement' (K objects' candidate poses). Exact integers, however large the config."""
+    num_frames = int(cfg.frames)
+    height, width = (int(side) for side in cfg.resolution)
+    objects = int(cfg.objects.num_static[1]) + int(cfg.objects.num_tossed[1])
+    steps = (num_frames + 1) * round(cfg.physics.step_rate / cfg.fps) + 1
+    pixel = BYTES_PER["pixel"] + (BYTES_PER["surface_pixel"] if cfg.layers.normal
+                                  or cfg.layers.object_coordinates else 0)
+    step = BYTES_PER["object_step"] + (BYTES_PER["contact_step"] if cfg.layers.events else 0)
+    return {"frames": num_frames * height * width * pixel,
+            "tracks": int(cfg.tracks.num_points) * num_frames * BYTES_PER["track_frame"],
+            "physics": objects * steps * step,
+            "placement": objects * int(cfg.objects.placement_tries) * BYTES_PER["placement_try"]}
+
+
 # The parts of a scene's cost that `generate_scene(timings=...)` reports, in CPU seconds of the
 # process (all threads, Mesa's rasterizer included): drawing the description, physics, building
 # the renderer (meshes, procedural textures, upload), the lit pass (with its shadow maps and

@@ -75,6 +75,14 @@ class Scene:
     def num_tracks(self) -> int:
         return int(self.tracks.shape[0])
 
+    def name(self, index: int) -> str:
+        """The scene by what it is, for titles: its preset, split and index from its meta (e.g.
+        "movi-e val scene 0"; `index`, its place in its shard set, where the meta has none), not
+        the folder it was read from, which may be a machine's temporary one."""
+        words = (self.meta.get("preset", "generated"), self.meta.get("split"), "scene",
+                 self.meta.get("scene_index", index))
+        return " ".join(str(word) for word in words if word is not None)
+
     def tracks_time_major(self, frames: slice = slice(None)) -> dict[str, np.ndarray | None]:
         """The tracker's layout of `frames`: `tracks` float32 (T,N,2), `occluded` bool (T,N) and
         `moving` bool (T,N) (None without the labels); views of the scene's arrays, no copies."""

@@ -16,18 +16,23 @@ from __future__ import annotations
 import glob
 import io
 import json
+import logging
 import os
 import tarfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Sequence
 
 from c4d_core.errors import UserError
-from c4d_core.files import disk_error, remove_quietly
+from c4d_core.files import check_regular_file, disk_error, remove_quietly, special_file_kind
+from c4d_core.geometry import intrinsics_problem
+from c4d_core.sniff import EMPTY, TAR, file_format
 from datagen.codecs import (ARRAY_FIELDS, CHECKSUMS, DECODE_ERRORS, FORMAT_1_RGB, REQUIRED_FIELDS,
                             crc32, decode_array, decode_field, encode_field, member_suffix,
                             to_json_bytes, wrong_layout)
 from datagen.jobs import SHARD_PATTERN, config_digest
 from datagen.scene import Scene
+
+log = logging.getLogger(__name__)
 
 KEY_PATTERN = "{split}-{scene_index:08d}"
 ALWAYS_READ = ("intrinsics", "meta")  # `decode_scene` needs these whatever fields are asked for
@@ -123,7 +128,8 @@ def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) ->
 
     `fields`: decode only these Scene fields (the others are None), e.g. to skip depth and flow
     when training. The members present are checked against `checksums.json` where the sample has
-    one. Raises `UserError` naming the sample key (and shard) if a member is missing or corrupt.
+    one. Raises `UserError` naming the sample key (and shard) if a member is missing or corrupt,
+    or its intrinsics are no camera's (`c4d_core.geometry.intrinsics_problem`).
     """
     key = sample.get("__key__", "?")
     where = _where(sample)
@@ -163,6 +169,9 @@ def decode_scene(sample: dict[str, Any], fields: Iterable[str] | None = None) ->
     except DECODE_ERRORS as exc:
         raise UserError(f"scene {key!r}{where}: member {suffix!r} is corrupt ({exc}); {REGENERATE}"
                         ) from exc
+    camera = values["intrinsics"] is not None and intrinsics_problem(values["intrinsics"])
+    if camera:  # where read, a reader unprojects with them
+        raise UserError(f"scene {key!r}{where}: {camera}; {REGENERATE}")
     return Scene(**values)
 
 
@@ -251,7 +260,9 @@ def list_shards(source: str | Path | Sequence[str | Path], split: str | None = N
     """Shard paths of `source`, in reading order.
 
     `source`: a directory (its `*.tar`, sorted; only `{split}-*.tar` when `split` is given), a
-    shard path, a glob (sorted), or a list of these (kept in the given order).
+    shard path, a glob (sorted), or a list of these (kept in the given order). The dataset
+    files beside them are read first: a damaged one is refused here, before any shard is read;
+    a directory missing shards its dataset file lists is named in a warning (`warn_if_incomplete`).
     """
     if isinstance(source, (list, tuple)):
         return [shard for item in source for shard in list_shards(item, split)]
@@ -260,7 +271,7 @@ def list_shards(source: str | Path | Sequence[str | Path], split: str | None = N
         shards = sorted(Path(p) for p in glob.glob(text) if p.endswith(".tar"))
         if not shards:
             raise UserError(f"no shard matches {text!r}; check the pattern (shards end in .tar)")
-        return shards
+        return _with_readable_dataset_files(shards)
     path = Path(text)
     if path.is_dir():
         shards = sorted(path.glob(f"{split}-*.tar" if split else "*.tar"))
@@ -275,12 +286,37 @@ def list_shards(source: str | Path | Sequence[str | Path], split: str | None = N
                 f"directory {path} holds shards of several splits ({', '.join(splits)}); "
                 "pass split=... or a glob such as DIR/train-*.tar"
             )
+        _with_readable_dataset_files(shards)
+        warn_if_incomplete(path, splits[0], shards)
         return shards
     if path.is_file():
-        return [path]
+        if kind := not_a_shard(path):
+            raise UserError(f"{path} is not a shard of `c4d datagen` (a .tar): it is {kind}; give "
+                            "a `c4d datagen` folder, a .tar shard or a glob of shards")
+        return _with_readable_dataset_files([path])
+    check_regular_file(path, "shard source", "give a directory, a .tar shard or a glob")
     raise UserError(
         f"shard source {text!r} does not exist; give a directory, a .tar shard or a glob"
     )
+
+
+def not_a_shard(path: str | Path) -> str | None:
+    """What the file `path` is where it is plainly no shard ("a Python pickle", "a PNG image",
+    ...; `c4d_core.sniff`), else None: a tar archive, or a .tar empty or of no known format (a
+    damaged shard, reported as such when read)."""
+    kind = file_format(path)
+    if kind == TAR or (kind in (None, EMPTY) and Path(path).suffix == ".tar"):
+        return None
+    return kind or "a file of no format c4d knows, not a tar archive"
+
+
+def _with_readable_dataset_files(shards: list[Path]) -> list[Path]:
+    """`shards`, once the dataset file beside each (one read per folder and split) is known to be
+    absent or readable (`_read_dataset_file` raises for a damaged one)."""
+    for folder, split in sorted({(s.parent, parsed[0]) for s in shards
+                                 if (parsed := _split_and_index(s)) is not None}):
+        _read_dataset_file(folder, split)
+    return shards
 
 
 def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iterator[dict[str, Any]]:
@@ -298,6 +334,7 @@ def iter_samples(shard: str | Path, fields: Iterable[str] | None = None) -> Iter
     if os.path.isdir(shard):
         raise UserError(f"shard {shard} is a folder, not a shard (a .tar file); move it out of "
                         "the shard set or rerun `c4d datagen`")
+    check_regular_file(shard, "shard", "move it out of the shard set or rerun `c4d datagen`")
     belongs = DatasetMember.of(shard)
     version = belongs.record.get("format_version") if belongs else None
     wanted = None if fields is None else {*fields, *ALWAYS_READ}
@@ -358,16 +395,30 @@ def _split_and_index(shard: str | Path) -> tuple[str, int] | None:
 
 
 def _read_dataset_file(folder: Path, split: str) -> dict[str, Any]:
+    """The dataset file of `split` in `folder`; {} where there is none. One that is there but
+    cannot be read (truncated, not JSON, no permission) is a `UserError` naming it: its shards
+    would otherwise all look foreign."""
+    path = folder / DATASET_FILE.format(split=split)
+    advice = ("delete it and rerun the same `c4d datagen` command to rewrite it (finished shards "
+              "are kept), or delete it alone to read the shards without it")
+    check_regular_file(path, "the dataset file", advice)  # a named pipe would never be read
     try:
-        record = json.loads((folder / DATASET_FILE.format(split=split)).read_text())
-    except (OSError, ValueError):
+        record = json.loads(path.read_text())
+        damage = None if isinstance(record, dict) else "not a JSON object"
+    except FileNotFoundError:
         return {}
-    return record if isinstance(record, dict) else {}
+    except OSError as exc:
+        damage = f"unreadable: {exc.strerror or exc}"
+    except ValueError as exc:  # a cut-off file: "Expecting ... delimiter: line 9 column 1"
+        damage = f"not valid JSON: {exc}"
+    if damage:
+        raise UserError(f"the dataset file {path} is damaged or unreadable ({damage}); {advice}")
+    return record
 
 
 def dataset_record(shard: str | Path) -> dict[str, Any]:
     """The dataset file (`dataset-{split}.json`: format_version, num_scenes, scenes_per_shard,
-    num_shards, ...) beside `shard`; {} if there is none or it cannot be read."""
+    num_shards, ...) beside `shard`; {} if there is none (a damaged one: `UserError`)."""
     parsed = _split_and_index(shard)
     return {} if parsed is None else _read_dataset_file(Path(shard).parent, parsed[0])
 
@@ -443,15 +494,47 @@ class DatasetMember:
                               "than the dataset file beside it describes; move the shard out of the folder")
 
 
-def scenes_in_shard(shard: str | Path) -> int | None:
-    """How many scenes `shard` was written with, from its dataset file; None if unknown."""
+def first_scene_meta(shard: str | Path) -> dict[str, Any]:
+    """The `meta.json` of the first scene in `shard` (seed, config_digest, ...), read without the
+    scene's other members; {} where the shard or the member cannot be read."""
+    suffix = "." + member_suffix("meta")
+    if special_file_kind(shard) is not None:  # a named pipe would wait for a writer forever
+        return {}
+    try:
+        with tarfile.open(shard, mode="r:") as tar:
+            for member in tar:
+                if member.isfile() and member.name.endswith(suffix):
+                    meta = json.loads(tar.extractfile(member).read().decode("utf-8"))
+                    return meta if isinstance(meta, dict) else {}
+    except (tarfile.TarError, EOFError, OSError, UnicodeDecodeError, ValueError):
+        pass
+    return {}
+
+
+def scene_indices(shard: str | Path) -> range:
+    """The indices of the scenes `shard` was written with, from its dataset file; empty if unknown."""
     parsed, record = _split_and_index(shard), dataset_record(shard)
     try:
-        count = min(int(record["scenes_per_shard"]),
-                    int(record["num_scenes"]) - parsed[1] * int(record["scenes_per_shard"]))
+        per_shard = int(record["scenes_per_shard"])
+        return range(parsed[1] * per_shard, min((parsed[1] + 1) * per_shard, int(record["num_scenes"])))
     except (KeyError, TypeError, ValueError):
-        return None
-    return count if count > 0 else None
+        return range(0)
+
+
+def scenes_in_shard(shard: str | Path) -> int | None:
+    """How many scenes `shard` was written with, from its dataset file; None if unknown."""
+    return len(scene_indices(shard)) or None
+
+
+def index_ranges(indices: Iterable[int]) -> str:
+    """Sorted indices as runs, e.g. [3, 4, 5, 9] -> "3..5, 9"; "?" for none."""
+    runs: list[list[int]] = []
+    for index in sorted(indices):
+        if runs and index == runs[-1][1] + 1:
+            runs[-1][1] = index
+        else:
+            runs.append([index, index])
+    return ", ".join(f"{a}..{b}" if b > a else str(a) for a, b in runs) or "?"
 
 
 def lost_scenes(shard: str | Path, read: int) -> int:
@@ -472,6 +555,28 @@ def missing_shards(shards: Sequence[str | Path]) -> list[Path]:
             if not path.exists():
                 missing.append(path)
     return missing
+
+
+_WARNED_INCOMPLETE: set[tuple[str, str]] = set()  # the (folder, split) warned about in this process
+
+
+def warn_if_incomplete(folder: Path, split: str, shards: Sequence[Path]) -> None:
+    """Warn, once per folder and split in a process, where the dataset file of `split` in `folder`
+    (whose shards are `shards`) lists shards the folder lacks: how many of its `num_shards`, and
+    which of its `num_scenes` they held."""
+    key = (str(folder.resolve()), split)
+    if key in _WARNED_INCOMPLETE:
+        return
+    _WARNED_INCOMPLETE.add(key)
+    missing = missing_shards(shards)
+    if missing:
+        record = _read_dataset_file(folder, split)
+        scenes = [i for path in missing for i in scene_indices(path)]
+        log.warning("%s is an incomplete dataset: %d of the %s shards its %s lists are missing "
+                    "(%d of its %s scenes: %s), so they are not read; rerun the same `c4d datagen` "
+                    "command to write them", folder, len(missing), record.get("num_shards"),
+                    DATASET_FILE.format(split=split), len(scenes), record.get("num_scenes", "?"),
+                    index_ranges(scenes))
 
 
 def read_scenes(

@@ -1,8 +1,15 @@
-"""`c4d eval`: D-ACC and TAP-Vid metrics of a DynPT checkpoint on shards or TAP-Vid pickles."""
+"""`c4d eval`: D-ACC and TAP-Vid metrics of a DynPT checkpoint on shards or TAP-Vid pickles.
+
+It scores every video of --data unless `eval.num_scenes=N` on the command line asks for the first
+N (shards only): the `eval.num_scenes` of a training config is the size of the periodic
+validation during training, not of this evaluation. It prints how many videos it scored of how
+many, and where it wrote its report.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import re
 from pathlib import Path
 
@@ -10,6 +17,7 @@ from omegaconf import OmegaConf
 
 from c4d_core.config import flag_overrides, load_config, parse_overrides
 from c4d_core.errors import UserError
+from c4d_core.ownership import check_folder, output_folder
 from c4d_core.schema import device as device_rule
 
 
@@ -22,24 +30,59 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="TAP-Vid query mode (key eval.query_mode; default: the checkpoint's "
                         "own, else first)")
     parser.add_argument("--out", default=None,
-                        help="folder for eval.json and eval.md (default: next to the checkpoint)")
+                        help="folder for eval.json and eval.md (default: next to the checkpoint, "
+                             "CKPT_FOLDER/eval-DATA-MODE)")
     parser.add_argument("--config", default=None,
                         help="config whose eval: section is used (default: the one the checkpoint "
-                             "was trained with, else paper-gpu's: 256 tracks per scene at 256x256)")
+                             "was trained with, else paper-gpu's: 256 tracks per scene at 256x256); "
+                             "its eval.num_scenes is not: every video is scored")
     parser.add_argument("--device", default=None, help="cpu, cuda, cuda:1 ... (default: auto)")
     parser.add_argument("overrides", nargs="*", metavar="key=value",
-                        help="eval overrides, e.g. eval.num_scenes=10")
+                        help="eval overrides, e.g. eval.num_scenes=10 (score only the first 10 "
+                             "videos of --data; default: all of them)")
 
 
 def eval_config(ckpt: dict, config: str | None, overrides: list[str]):
     """The `eval:` section used: `config`'s if given, else the one saved with the checkpoint by
     `c4d train` (its own resolution, track count and query mode; keys it lacks from paper-gpu),
-    else paper-gpu's; `overrides` on top."""
+    else paper-gpu's; `overrides` on top. `num_scenes` is 0 (every video) unless `overrides` set
+    it: the configs' value is the size of the validation during training."""
     cfg = load_config("dynpt", config or "paper-gpu", overrides=overrides).eval
+    asked = parse_overrides(overrides).get("eval", {})
     saved = ckpt["extra"].get("train_config", {}).get("eval")
-    if config or not saved:
-        return cfg
-    return OmegaConf.merge(cfg, saved, parse_overrides(overrides).get("eval", {}))
+    if saved and not config:
+        cfg = OmegaConf.merge(cfg, saved, asked)
+    return OmegaConf.merge(cfg, {"num_scenes": asked.get("num_scenes", 0)})  # checked by load_config
+
+
+def shard_scenes(source: str) -> int:
+    """How many scenes the shards of `source` hold: each shard's count from its dataset file,
+    else its scenes counted by reading past them (nothing is decoded; an unreadable rest is not
+    counted)."""
+    from datagen.shards import iter_samples, list_shards, scenes_in_shard
+
+    total = 0
+    for shard in list_shards(source):
+        planned = scenes_in_shard(shard)
+        if planned is not None:
+            total += planned
+            continue
+        with contextlib.suppress(UserError):
+            for _ in iter_samples(shard, fields=()):
+                total += 1
+    return total
+
+
+def scored_line(scored: int, total: int, data: str, limit: int, skipped: int, no_tracks: int) -> str:
+    """What `c4d eval` prints under its table: "scored N of M videos of DATA", and why not all."""
+    why = []
+    if limit and scored + skipped + no_tracks < total:
+        why.append(f"the first {limit}, as eval.num_scenes={limit} asked; without it every video is scored")
+    if skipped:
+        why.append(f"{skipped} unreadable, skipped (see the warnings above)")
+    if no_tracks:
+        why.append(f"{no_tracks} with no visible track to query")
+    return f"scored {scored} of {total} videos of {data}" + (f" ({'; '.join(why)})" if why else "")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,9 +97,14 @@ def run(args: argparse.Namespace) -> int:
     overrides = [*args.overrides, *flag_overrides({"eval.query_mode": args.mode}, args.overrides)]
     cfg = eval_config(ckpt, args.config, overrides)
     mode = cfg.query_mode
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
+    out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{mode}"
+    check_folder(out, "eval", args.overwrite)  # before the work
     tracker = Tracker(model_from_checkpoint(ckpt, args.ckpt), args.device)
     skipped: list[str] = []  # scenes that could not be read (warned about, counted in the table)
-    items, kind = load_source(args.data, cfg, skipped)
+    items, kind = load_source(args.data, cfg, skipped)  # the first eval.num_scenes (0: all)
+    read_all = not cfg.num_scenes or len(items) < cfg.num_scenes
+    total = len(items) + len(skipped) if read_all else shard_scenes(args.data)
     if not items:
         raise UserError(f"no readable scene in {args.data} ({len(skipped)} skipped, see the "
                         "warnings above); check it with `c4d inspect SOURCE --check`")
@@ -68,12 +116,14 @@ def run(args: argparse.Namespace) -> int:
     size = "x".join(str(v) for v in cfg.resolution)
     tracks = f", {cfg.num_tracks} tracks per video" if kind == "shards" else ""
     title = f"{Path(args.data).name} ({mode} queries, videos at {size}{tracks})"
-    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
-    out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{mode}"
     info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": mode,
-            "skipped": skipped,
+            "skipped": skipped, "videos_in_data": total, "num_scenes": cfg.num_scenes,
             "resolution": list(cfg.resolution), "num_tracks": cfg.num_tracks if kind == "shards" else None}
-    json_path, md_path = write_report(result, baseline, out, title, info)
+    with output_folder(out, "eval", args.overwrite):
+        json_path, md_path = write_report(result, baseline, out, title, info)
     print(md_path.read_text(), end="")
-    print(f"wrote {json_path} and {md_path}")
+    scored = result["summary"]["num_videos"]
+    print(scored_line(scored, total, args.data, cfg.num_scenes, len(skipped), len(items) - scored))
+    where = "" if args.out else " (next to the checkpoint; --out DIR writes elsewhere)"
+    print(f"wrote {json_path} and {md_path}{where}")
     return 0

@@ -18,6 +18,7 @@ import numpy as np
 from c4d_core.errors import UserError
 from c4d_core.schema import device as device_rule
 from c4d_core.geometry import rescale_pixels
+from c4d_core.ownership import check_folder, output_folder
 
 log = logging.getLogger("c4d.track")
 
@@ -80,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
         value = getattr(args, flag)
         if value is not None and value < 1:
             raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {value}")
+    if args.size is not None and args.max_size is not None and args.size > args.max_size:
+        raise UserError(f"--size {args.size} is larger than --max-size {args.max_size}: --size sets "
+                        "the long side exactly and --max-size only caps it, so give one of them")
     if args.support_grid < 0 or args.support_grid == 1:
         raise UserError("--support-grid must be 0 (none) or at least 2")
     if args.device is not None:
@@ -100,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
     grid = grid_for_budget(H, W, args.grid_size, args.points)
     tracker = load_tracker(args.ckpt, args.device)
     out = Path(args.out)
+    check_folder(out, "track", args.overwrite)  # before the work
     log.info("tracking %s points through %d frames of %dx%d (source %dx%d) on %s",
              f"grid-sampled ({grid} px cells)" if queries is None else len(queries), T, W, H, W0, H0,
              tracker.device)
@@ -110,12 +115,13 @@ def run(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - start
     log.info("tracked %d points in %.1f s (%.2f s per frame)", result.tracks.shape[1], seconds,
              seconds / T)
-    result.scaled(1 / sx, 1 / sy).save(out / "tracks.npz")
     overlay = draw_tracks_enlarged(video, result.tracks, result.visible, result.moving,
                                    show_occluded=False, legend=True)
     source_fps = video_fps(args.video)
     fps = args.fps or (source_fps / args.stride if source_fps else 12.0)
-    write_user_video(out / "overlay.mp4", overlay, fps)
+    with output_folder(out, "track", args.overwrite):
+        result.scaled(1 / sx, 1 / sy).save(out / "tracks.npz")
+        write_user_video(out / "overlay.mp4", overlay, fps)
     moving = np.nanmean(result.moving[result.visible] > 0.5) if result.visible.any() else float("nan")
     log.info("wrote %s and %s (%.0f%% of visible points predicted moving)", out / "tracks.npz",
              out / "overlay.mp4", 100 * moving)

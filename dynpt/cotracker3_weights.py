@@ -85,15 +85,19 @@ def is_cotracker3_state(state: Mapping) -> bool:
     return "updateformer.input_transform.weight" in state and "fnet.conv1.weight" in state
 
 
+RELEASED = "scaled_offline.pth or scaled_online.pth from huggingface.co/facebook/cotracker3"
+
+
 def read_state(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     """CoTracker3's state dict from a file: as released, a plain state dict, or one under `model`."""
-    state = read_tensor_file(Path(path), "CoTracker3", "download scaled_offline.pth or scaled_online.pth "
-                             "from huggingface.co/facebook/cotracker3", "the file is truncated or damaged")
+    state = read_tensor_file(Path(path), "CoTracker3", f"download {RELEASED}",
+                             f"the file is truncated or damaged: download {RELEASED} again",
+                             f"a CoTracker3 checkpoint holds tensors alone: pass {RELEASED}")
     if isinstance(state, Mapping) and isinstance(state.get("model"), Mapping):
         state = state["model"]
     if not isinstance(state, Mapping) or not is_cotracker3_state(state):
         raise UserError(f"{str(path)!r} is not a CoTracker3 checkpoint (no fnet.* / updateformer.* "
-                        "tensors); expected scaled_offline.pth, scaled_online.pth or the like")
+                        f"tensors); expected {RELEASED}")
     check_state(state, repr(str(path)))
     return dict(state)
 

@@ -24,11 +24,19 @@ Data of another dataset in a source folder (`datagen.shards.ForeignData`: a shar
 pattern or beyond its `num_shards`, a scene of another seed, size or config, a misplaced or
 repeated key) stops training with one line, or with `data.foreign=skip` is skipped with a
 warning (the rest of that shard; not counted as bad).
+
+A scene whose clip has no track that is finite, visible in it and within `data.max_offscreen_px`
+of the crop gives no sample and is passed over, not counted as bad: a random clip of good data
+can miss every track. But where `FRUITLESS_IN_A_ROW` scenes of one source in a row give no sample
+(bad ones included, so that not even data.max_bad_fraction=1 reads forever), the source has no
+usable scene (its tracks all NaN, say): the split stops with a `UserError` naming the source
+instead of drawing from it forever. A sample from the source starts the count again.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from typing import Iterator, Sequence
 
 import cv2
@@ -46,6 +54,7 @@ log = logging.getLogger(__name__)
 
 TRAIN_FIELDS = ("rgb", "tracks", "occluded", "moving", "query_frame")
 MIN_COUNTED = 100  # the bad-sample limit is a fraction of at least this many samples
+FRUITLESS_IN_A_ROW = 100  # scenes of one source in a row without a sample: it has no usable data
 
 
 def too_many_bad(bad: int, read: int, max_fraction: float) -> bool:
@@ -155,6 +164,7 @@ class ShardStream(IterableDataset):
                             "must be non-empty lists of the same length")
         if min(weights) < 0 or sum(weights) <= 0:
             raise UserError(f"data.weights must be >= 0 with a positive sum, got {list(weights)}")
+        self.names = [str(s) for s in sources]
         self.shards = [[str(p) for p in list_shards(s)] for s in sources]
         self.probs = np.asarray(weights, float) / float(sum(weights))
         self.cfg, self.seed = data_cfg, int(seed)
@@ -224,8 +234,21 @@ class ShardStream(IterableDataset):
                 f"{self.cfg.max_bad_fraction}; last: {exc} (check the data with `c4d inspect "
                 "SOURCE --check`, or raise data.max_bad_fraction)")
 
+    def _fruitless(self, source: int, raw: dict, why: str) -> None:
+        """Count a scene of `source` that gave no sample (`why`); stop once FRUITLESS_IN_A_ROW
+        scenes of it in a row gave none."""
+        self._in_a_row[source] += 1
+        if self._in_a_row[source] >= FRUITLESS_IN_A_ROW:
+            name = self.names[source]
+            raise UserError(
+                f"no scene of data.sources[{source}] ({name}) gives a training sample: none of "
+                f"{self._in_a_row[source]} in a row did (last: scene {raw['__key__']} of "
+                f"{raw['__url__']}: {why}); check the data with `c4d inspect {name} --check`, "
+                "or leave the source out")
+
     def __iter__(self) -> Iterator[dict]:
         self._counts = [0, 0]  # [read, bad] of this split, since this iterator started
+        self._in_a_row = [0] * len(self.shards)  # per source: its last scenes without a sample
         info = get_worker_info()
         worker, num_workers = (info.id, info.num_workers) if info else (0, 1)
         num_splits = self.world_size * num_workers
@@ -243,21 +266,47 @@ class ShardStream(IterableDataset):
                 scene = decode_scene(raw, TRAIN_FIELDS)
             except UserError as exc:
                 self._bad(exc)
+                self._fruitless(source, raw, str(exc))
                 continue
             try:
                 sample = make_training_sample(scene, self.cfg, _rng(self.seed, split, n, 1))
             except UserError as exc:
                 raise UserError(f"sample {raw['__key__']} of {raw['__url__']}: {exc}") from exc
-            if sample is not None:
-                yield {**sample, "key": raw["__key__"],
-                       "position": np.array([split, num_splits] + state, np.int64),
-                       "counts": np.array(self._counts, np.int64)}
+            if sample is None:
+                self._fruitless(source, raw, "no track is finite, visible in the clip and within "
+                                f"data.max_offscreen_px={self.cfg.max_offscreen_px} of the crop")
+                continue
+            self._in_a_row[source] = 0
+            yield {**sample, "key": raw["__key__"],
+                   "position": np.array([split, num_splits] + state, np.int64),
+                   "counts": np.array(self._counts, np.int64)}
 
 
 def _init_worker(worker_id: int) -> None:
     """One thread per loader worker: the workers already use every core between them."""
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
+
+
+# OpenCV's thread pool (pthreads) is not fork-safe: a forked loader worker inherits the pool's
+# list of threads but not the threads, and `_init_worker`'s `cv2.setNumThreads(1)` then joins
+# threads that exist only in the parent: the worker waits forever with its CPU idle, and so does
+# the loader (benchmarks/device_check.py's loader section, whose 0-worker row had started the
+# pool, hung so). So before every fork of this process the pool is emptied (one thread: the
+# caller's alone) and its size restored in the parent afterwards; the child starts with none.
+_opencv_threads: list[int] = []  # the pool size of each fork under way
+
+
+def _stop_opencv_threads() -> None:
+    _opencv_threads.append(cv2.getNumThreads())
+    cv2.setNumThreads(1)  # joins the pool's idle threads
+
+
+def _restore_opencv_threads() -> None:
+    cv2.setNumThreads(_opencv_threads.pop())
+
+
+os.register_at_fork(before=_stop_opencv_threads, after_in_parent=_restore_opencv_threads)
 
 
 def make_loader(stream: ShardStream, batch_size: int, num_workers: int,

@@ -1,9 +1,12 @@
 """Device decisions as small pure functions, so the CUDA-only branches run (and are tested) on a CPU.
 
 Each decision takes what it depends on (device type, bf16 support, free bytes) as arguments; only
-`bf16_supported`, `free_memory` and the peak-memory pair ask the hardware. Callers: `dynpt.train` (process group
-backend, training autocast, cuDNN flags), `dynpt.data` (pinned loader memory), `dynpt.inference`
-and `c4d_pipeline.dust3r_pointmaps` (inference autocast, pair batch size from free memory).
+`bf16_supported`, `free_memory`, the peak-memory pair and `device_for` (the GPU count for
+`chosen_device`) ask the hardware. Callers: `dynpt.train` (process group backend, training
+autocast, cuDNN flags), `dynpt.data` (pinned loader memory), `dynpt.inference` and
+`c4d_pipeline.dust3r_pointmaps` (inference autocast, pair batch size from free memory), and every
+device a user names, through `device_for` (`dynpt.inference.Tracker`, `c4d run`, the DUSt3R and
+RAFT networks).
 """
 
 from __future__ import annotations
@@ -41,6 +44,31 @@ def peak_memory(device: torch.device) -> int | None:
     if device.type != "cuda":
         return None
     return int(torch.cuda.max_memory_allocated(device))
+
+
+def chosen_device(name: str | torch.device | None, gpus: int, torch_version: str) -> torch.device:
+    """The device `name` names ('cpu', 'cuda', 'cuda:N'; None: 'cuda' where there is a GPU, else
+    'cpu'), on a machine with `gpus` CUDA GPUs and torch `torch_version`. One-line `UserError`
+    for a name torch does not know and for a GPU the machine lacks (a CPU-only torch build has
+    none): asked for anyway, torch fails deep inside the first tensor moved there."""
+    try:
+        device = torch.device(name or ("cuda" if gpus else "cpu"))
+    except RuntimeError as exc:
+        raise UserError(f"unknown device {str(name)!r}; use cpu, cuda or cuda:N") from exc
+    if device.type == "cuda" and not gpus:
+        build = " (a CPU-only build)" if "+cpu" in torch_version else ""
+        raise UserError(f"device {str(device)!r} requested but no CUDA GPU is available to torch "
+                        f"{torch_version}{build}; use cpu")
+    if device.type == "cuda" and (device.index or 0) >= gpus:
+        raise UserError(f"device {str(device)!r} requested but this machine has {gpus} CUDA "
+                        f"GPU(s), cuda:0 to cuda:{gpus - 1}; choose one of them or cpu")
+    return device
+
+
+def device_for(name: str | torch.device | None) -> torch.device:
+    """`chosen_device` on this machine's GPUs: what every command's device setting goes through."""
+    return chosen_device(name, torch.cuda.device_count() if torch.cuda.is_available() else 0,
+                         torch.__version__)
 
 
 def training_device(cuda_available: bool, local_rank: int) -> torch.device:

@@ -98,10 +98,15 @@ def load_eval_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list
 
 
 def load_source(source: str, eval_cfg, skipped: list[str] | None = None) -> tuple[list[dict], str]:
-    """Evaluation items of a shard source or a TAP-Vid pickle source, and its kind (shards:
-    the errors of skipped scenes are appended to `skipped`)."""
+    """Evaluation items of a shard source (its first `eval_cfg.num_scenes`, 0: all; the errors of
+    skipped scenes are appended to `skipped`) or of a TAP-Vid pickle source (all its videos: a
+    benchmark's figures are over all of them, so a `num_scenes` is refused), and its kind."""
     text = os.fspath(source)
     if text.endswith(".pkl") or (Path(text).is_dir() and any(Path(text).glob("*.pkl"))):
+        if eval_cfg.get("num_scenes"):
+            raise UserError(f"eval.num_scenes={eval_cfg.num_scenes} is for datagen shards; a TAP-Vid "
+                            f"benchmark ({text}) is scored on all its videos, as its published "
+                            "figures are: leave eval.num_scenes out")
         return list(read_tapvid(text, tuple(eval_cfg.resolution))), "tapvid"
     list_shards(text)  # a clear UserError if there are no shards
     return load_eval_scenes(text, eval_cfg, skipped), "shards"
@@ -213,6 +218,19 @@ def track_image(example: dict, num_frames: int = 4, min_height: int = 256) -> np
     return contact_sheet(drawn, columns=num_frames, labels=[f"t={t}" for t in frames])
 
 
+def signed(value: float, digits: int = 1) -> str:
+    """`value` with its sign and `digits` decimals; one that rounds to zero is "+0.0", never "-0.0"."""
+    text = f"{value:+.{digits}f}"
+    return f"{0.0:+.{digits}f}" if float(text) == 0 else text
+
+
+def interval_verdict(low: float, high: float) -> str:
+    """What a 95 % interval [low, high] of a difference (method minus baseline) says of the method:
+    "above" the baseline only when the whole interval is above 0, "below" when it is all below,
+    "within the variation" when it holds 0."""
+    return "above" if low > 0 else "below" if high < 0 else "within the variation"
+
+
 def markdown_table(rows: dict[str, dict], title: str) -> str:
     """Markdown table (percent), one row per {name: summary}, e.g. the tracker and a baseline."""
     first = next(iter(rows.values()))
@@ -242,6 +260,10 @@ def write_report(result: dict, baseline: dict, out_dir: str | Path, title: str,
                            "zero motion, all static": baseline["summary"]}, title)
     if interval is not None:
         diff = 100 * (result["summary"]["d_acc"] - baseline["summary"]["d_acc"])
-        text += (f"\nD-ACC minus all-static: {diff:+.1f} points; 95 % interval over the videos "
-                 f"(paired bootstrap): {100 * interval[0]:+.1f} to {100 * interval[1]:+.1f}.\n")
+        verdict = {"above": "so it beats all-static", "below": "so it is below all-static",
+                   "within the variation": "so the difference is within the variation over the "
+                                           "videos"}[interval_verdict(*interval)]
+        text += (f"\nD-ACC minus all-static: {signed(diff)} points; 95 % interval over the videos "
+                 f"(paired bootstrap): {signed(100 * interval[0])} to {signed(100 * interval[1])}, "
+                 f"{verdict}.\n")
     return write_json(out / "eval.json", payload), write_text(out / "eval.md", text)

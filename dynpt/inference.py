@@ -19,7 +19,7 @@ from c4d_core.errors import UserError
 from c4d_core.files import atomic_path
 from c4d_core.geometry import rescale_pixels
 from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
-from dynpt.device import autocast, bf16_supported, inference_autocast_dtype
+from dynpt.device import autocast, bf16_supported, device_for, inference_autocast_dtype
 from dynpt.model import DynPT
 from dynpt.query_sampling import sample_queries
 
@@ -115,12 +115,7 @@ class Tracker:
     """A DynPT model in eval mode on a device, tracking whole videos."""
 
     def __init__(self, model: DynPT, device: str | torch.device | None = None):
-        try:
-            device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-        except RuntimeError as exc:
-            raise UserError(f"unknown device {device!r}; use cpu, cuda or cuda:N") from exc
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise UserError(f"device {str(device)!r} requested but no CUDA GPU is available; use cpu")
+        device = device_for(device)
         self.model = model.eval().to(device)
         self.device = device
 

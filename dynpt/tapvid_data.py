@@ -15,6 +15,7 @@ An evaluation item is a dict: `name`, `video` uint8 (T,H,W,3), `tracks` float32 
 from __future__ import annotations
 
 import glob
+import logging
 from pathlib import Path
 from typing import Iterator
 
@@ -25,17 +26,71 @@ from c4d_core.errors import UserError
 from c4d_core.pickles import read_data_pickle
 from c4d_core.geometry import swap_track_axes
 
+log = logging.getLogger(__name__)
+
 QUERY_STRIDE = 5  # the benchmark's 'strided' mode queries every 5th frame
 
 
-def _decode_frames(video) -> np.ndarray:
-    """uint8 (T,H,W,3) RGB from an array of frames or of JPEG/PNG bytes."""
-    if isinstance(video, np.ndarray) and video.dtype == np.uint8 and video.ndim == 4:
+EXPECTED_VIDEO = ("uint8 frames (T,H,W,3) or an array of encoded JPEG/PNG bytes, as the TAP-Vid "
+                  "files have")
+
+
+def _pixel_frames(name: str, video: np.ndarray) -> np.ndarray:
+    """uint8 (T,H,W,3) from a numeric (T,H,W,3) array. Values in [0, 255] of another dtype are
+    rounded, with a warning: tapnet's reader takes any array as 0..255 (frames / 255 * 2 - 1).
+    A float video in [0, 1] (black to that reader), other values or shapes: `UserError`."""
+    if video.dtype == np.uint8 and video.shape[-1] == 3:
         return video
-    frames = [cv2.imdecode(np.frombuffer(f, np.uint8), cv2.IMREAD_COLOR) for f in video]
+    numeric = np.issubdtype(video.dtype, np.integer) or np.issubdtype(video.dtype, np.floating)
+    if not numeric or video.shape[-1] != 3 or video.size == 0:
+        raise UserError(f"TAP-Vid video {name!r} is a {video.dtype} array of shape {video.shape}; "
+                        f"expected {EXPECTED_VIDEO}")
+    low, high = float(video.min()), float(video.max())
+    if not 0 <= low <= high <= 255:  # NaN fails too
+        raise UserError(f"TAP-Vid video {name!r} is {video.dtype} with values in [{low:g}, "
+                        f"{high:g}]; expected {EXPECTED_VIDEO}")
+    if np.issubdtype(video.dtype, np.floating) and high <= 1:
+        raise UserError(f"TAP-Vid video {name!r} is {video.dtype} in [0, 1], but TAP-Vid frames "
+                        "are 0..255 (tapnet's reader divides by 255: it would see black); store "
+                        "uint8 frames, (video * 255).round().astype(np.uint8)")
+    log.warning("TAP-Vid video %r is %s, not uint8: its values read as 0..255 and rounded, as "
+                "tapnet's reader takes them", name, video.dtype)
+    return np.rint(video).astype(np.uint8)
+
+
+def _decode_frames(name: str, video) -> np.ndarray:
+    """uint8 (T,H,W,3) RGB from an array of frames or of JPEG/PNG bytes."""
+    if isinstance(video, np.ndarray) and video.ndim == 4:
+        return _pixel_frames(name, video)
+    items = video if isinstance(video, (np.ndarray, list, tuple)) else [video]
+    odd = sorted({type(f).__name__ for f in items if not isinstance(f, bytes)})
+    if odd or not len(items):
+        raise UserError(f"TAP-Vid video {name!r} holds {', '.join(odd) or 'no'} items; expected "
+                        f"{EXPECTED_VIDEO}")
+    frames = [cv2.imdecode(np.frombuffer(f, np.uint8), cv2.IMREAD_COLOR) for f in items]
     if any(f is None for f in frames):
-        raise UserError("a TAP-Vid video holds undecodable frame bytes; re-download the pickle")
+        raise UserError(f"TAP-Vid video {name!r} holds frame bytes that do not decode as an image; "
+                        "re-download the pickle")
     return np.stack([f[..., ::-1] for f in frames])
+
+
+def _labels(name: str, entry: dict, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The entry's `points` float64 (N,T,2) and `occluded` bool (N,T), T the frames of its video
+    `frames` (T,H,W,3); other shapes (points of fewer frames than the video, occluded flags of
+    other tracks) or values that are no numbers: `UserError` naming the entry and the shapes."""
+    try:
+        points = np.asarray(entry["points"], np.float64)
+        occluded = np.asarray(entry["occluded"], bool)
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"TAP-Vid entry {name!r} has points or occluded flags that are no array of "
+                        f"numbers ({exc}): not a TAP-Vid pickle") from exc
+    tracks = points.shape[0] if points.ndim else 0
+    if points.shape != (tracks, len(frames), 2) or occluded.shape != (tracks, len(frames)):
+        raise UserError(f"TAP-Vid entry {name!r} has points of shape {points.shape} and occluded of "
+                        f"shape {occluded.shape} for a video of shape {frames.shape}; expected "
+                        f"points (N,T,2) and occluded (N,T) with T = {len(frames)}, the video's "
+                        "frames: the pickle is damaged or not TAP-Vid's (re-download it)")
+    return points, occluded
 
 
 def tapvid_item(name: str, entry: dict, size: tuple[int, int] = (256, 256)) -> dict:
@@ -46,14 +101,14 @@ def tapvid_item(name: str, entry: dict, size: tuple[int, int] = (256, 256)) -> d
     missing = {"video", "points", "occluded"} - set(entry)
     if missing:
         raise UserError(f"TAP-Vid entry {name!r} lacks {sorted(missing)}: not a TAP-Vid pickle")
-    frames = _decode_frames(entry["video"])
+    frames = _decode_frames(name, entry["video"])
+    points, occluded = _labels(name, entry, frames)  # (N,T,2) in [0,1], (N,T)
     h, w = size
     if frames.shape[1:3] != (h, w):
         frames = np.stack([cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA) for f in frames])
-    points = np.asarray(entry["points"], np.float64)  # (N,T,2) in [0,1]
     tracks = points * np.array([w, h]) - 0.5  # pixel centres at integers
     return {"name": name, "video": frames, "tracks": swap_track_axes(tracks).astype(np.float32),
-            "occluded": swap_track_axes(np.asarray(entry["occluded"], bool)), "moving": None}
+            "occluded": swap_track_axes(occluded), "moving": None}
 
 
 def read_tapvid(source: str | Path, size: tuple[int, int] = (256, 256)) -> Iterator[dict]:

@@ -25,10 +25,10 @@ def test_draw_tracks_colours_visible_points_by_mobility_and_leaves_input_alone()
     assert (frames == 128).all()
     np.testing.assert_array_equal(out[2, 10, 10], vis.STATIC_COLOR)
     np.testing.assert_array_equal(out[2, 25, 35], vis.MOVING_COLOR)
-    # a probability of one half blends the two colours
-    half = vis.draw_tracks(frames, tracks, moving=np.full((4, 2), 0.5), radius=3)
-    expected = (np.array(vis.STATIC_COLOR) + np.array(vis.MOVING_COLOR)) / 2
-    np.testing.assert_allclose(half[0, 10, 10], expected, atol=1)
+    # probabilities are drawn in the legend's two colours, never a blend of them
+    probability = vis.draw_tracks(frames, tracks, moving=np.array([[0.5, 0.6]] * 4), radius=3)
+    np.testing.assert_array_equal(probability[0, 10, 10], vis.STATIC_COLOR)
+    np.testing.assert_array_equal(probability[0, 25, 35], vis.MOVING_COLOR)
 
 
 def test_enlarged_tracks_land_on_the_centre_of_their_enlarged_pixel():

@@ -19,6 +19,15 @@ from datagen.shards import (
 )
 
 
+def pinhole(entries: np.ndarray) -> np.ndarray:
+    """Random (T,3,3) entries as the camera matrices `decode_scene` accepts:
+    [[|a|, b, c], [0, |d|, e], [0, 0, 1]] (the other entries still at full entropy)."""
+    cameras = np.triu(entries)
+    cameras[:, [0, 1], [0, 1]] = np.abs(cameras[:, [0, 1], [0, 1]])
+    cameras[:, 2] = [0, 0, 1]
+    return cameras
+
+
 def synthetic_scene(seed=0, frames=4, height=12, width=10, num_objects=3, num_tracks=7,
                     num_events=5):
     """A Scene with random values of the contract's dtypes and shapes (float labels at full
@@ -48,7 +57,7 @@ def synthetic_scene(seed=0, frames=4, height=12, width=10, num_objects=3, num_tr
         segmentation=rng.integers(0, k + 1, (t, h, w)).astype(np.int32),
         flow_fwd=f32(t, h, w, 2),
         flow_bwd=f32(t, h, w, 2),
-        intrinsics=f32(t, 3, 3),
+        intrinsics=pinhole(f32(t, 3, 3)),
         cam_to_world=f32(t, 4, 4),
         object_to_world=f32(k, t, 4, 4),
         objects=[{"asset_id": f"primitive/box{i}", "scale": 1.5 + i, "mass": 2.0, "tossed": i == 0,

@@ -36,8 +36,8 @@ def test_device_check_on_the_cpu(tmp_path):
     assert "--cpu" in lines[start - 2] and "0 section(s) failed" in lines[start - 2]
 
 
-def _device_check(*args, tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+def _device_check(*args, tmp_path, **environment):
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", **environment}
     return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "device_check.py"), *args,
                            "--out", str(tmp_path)], env=env, cwd=ROOT, capture_output=True, text=True,
                           timeout=300)
@@ -54,3 +54,33 @@ def test_skip_of_an_unknown_section_is_one_line(tmp_path):
     proc = _device_check("--skip", "dust3r,gpu", tmp_path=tmp_path)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "--skip gpu: no such section; choose from shards,speed,dust3r,c4d,loader,run" in proc.stderr
+
+
+def _processes_with(variable: str) -> list[int]:
+    """The processes whose environment holds `variable` (inherited from a device_check run)."""
+    found = []
+    for environ in Path("/proc").glob("[0-9]*/environ"):
+        try:
+            if f"{variable}=".encode() in environ.read_bytes():
+                found.append(int(environ.parent.name))
+        except OSError:  # gone meanwhile, or not ours to read
+            pass
+    return found
+
+
+def test_a_section_past_its_limit_is_killed_and_the_check_goes_on(tmp_path):
+    """The shards section (c4d datagen, ~10 s of CPU here) under a 3 s limit: its row says it
+    timed out, no process of it is left, and the next section still runs."""
+    marker = f"DEVICE_CHECK_RUN_{os.getpid()}"
+    proc = _device_check("--cpu", "--skip", "speed,c4d,run", "--section-limit-s", "shards=3",
+                         tmp_path=tmp_path, **{marker: "1"})
+    assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-3000:]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in proc.stdout.splitlines()
+            if line.startswith("| ")][1:]
+    assert rows[0][:3] == ["shards (c4d datagen)", "TIMED OUT",
+                           "timed out after 3 s (--section-limit-s); its processes were killed"], rows
+    assert [r[0] for r in rows[1:]] == ["DUSt3R pair forward"] * 2 + ["DynPT loader", "total"], rows
+    assert rows[3][1:3] == ["SKIPPED", "no shards"], rows
+    assert 3 <= int(re.search(r"shards \(c4d datagen\) (\d+) s", rows[4][1])[1]) < 10, rows
+    assert "2 section(s) failed" in proc.stdout  # the timed-out section and the one needing it
+    assert not _processes_with(marker)

@@ -150,6 +150,47 @@ def test_eval_uses_the_checkpoints_own_eval_settings():
     assert list(cfg.resolution) == [48, 48] and cfg.num_tracks == 64 and cfg.num_scenes == 2
     assert list(eval_config(saved, "paper-gpu", []).resolution) == [256, 256]
     assert list(eval_config({"extra": {}}, None, []).resolution) == [256, 256]  # nothing saved
+    # but not its number of scenes (the validation's during training), nor a preset's: all videos
+    assert [eval_config(saved, config, []).num_scenes for config in (None, "paper-gpu")] == [0, 0]
+
+
+def test_eval_scores_every_video_unless_asked_and_says_how_many_and_where(tmp_path, davis_pickle,
+                                                                          capsys):
+    """The checkpoint's eval.num_scenes (8: its validation during training) does not cut `c4d
+    eval`: all 12 videos are scored, and the output says so and where it wrote (next to the
+    checkpoint by default); eval.num_scenes=5 on the command line scores the first 5 "of 12"
+    (counted in shards without a dataset file: the scenes are read past); on a TAP-Vid pickle
+    it is refused before anything is written."""
+    from dynpt.cli_eval import shard_scenes
+    from tests.dynpt_testdata import generated_shards
+
+    ckpt = tmp_path / "run" / "last.pt"
+    saved = {"eval": {"resolution": [32, 32], "num_tracks": 8, "num_scenes": 8, "seed": 0}}
+    save_checkpoint(ckpt, build_model(load_config("dynpt", "tiny-cpu").model), step=0,
+                    extra={"train_config": saved})
+    shards = synthetic_shards(12, 3)
+    assert main(["eval", "--ckpt", str(ckpt), "--data", str(shards)]) == 0
+    printed = capsys.readouterr().out
+    beside = tmp_path / "run" / f"eval-{shards.name}-first"
+    assert f"scored 12 of 12 videos of {shards}\n" in printed
+    assert (f"wrote {beside / 'eval.json'} and {beside / 'eval.md'} (next to the checkpoint; "
+            "--out DIR writes elsewhere)") in printed
+    assert json.loads((beside / "eval.json").read_text())["summary"]["num_videos"] == 12
+    chosen = tmp_path / "chosen"
+    assert main(["eval", "--ckpt", str(ckpt), "--data", str(shards), "--out", str(chosen),
+                 "eval.num_scenes=5"]) == 0
+    printed = capsys.readouterr().out
+    assert (f"scored 5 of 12 videos of {shards} (the first 5, as eval.num_scenes=5 asked; "
+            "without it every video is scored)\n") in printed
+    assert f"wrote {chosen / 'eval.json'} and {chosen / 'eval.md'}\n" in printed
+    report = json.loads((chosen / "eval.json").read_text())
+    assert report["summary"]["num_videos"] == 5 and report["info"]["videos_in_data"] == 12
+    assert shard_scenes(str(generated_shards())) == 4  # from the dataset file `c4d datagen` wrote
+    refused = tmp_path / "davis"
+    assert main(["eval", "--ckpt", str(ckpt), "--data", str(davis_pickle), "--out", str(refused),
+                 "eval.num_scenes=1"]) == 2
+    assert "eval.num_scenes=1 is for datagen shards" in capsys.readouterr().err
+    assert not refused.exists()
 
 
 def test_eval_mode_is_the_key_eval_query_mode(tmp_path, davis_pickle, capsys):

@@ -129,7 +129,7 @@ def test_video_round_trip_and_errors(tmp_path):
     (tmp_path / "junk.mp4").write_bytes(np.random.default_rng(0).bytes(5000))
     (tmp_path / "truncated.mp4").write_bytes(path.read_bytes()[:300])
     (tmp_path / "nothing").mkdir()
-    for bad, message in [("missing.mp4", "does not exist"), ("empty.mp4", "cannot open|no frame"),
+    for bad, message in [("missing.mp4", "does not exist"), ("empty.mp4", "is not a video: it is an empty file"),
                          ("junk.mp4", "cannot open|no frame"), ("truncated.mp4", "cannot open|no frame"),
                          ("nothing", "no images")]:
         with pytest.raises(UserError, match=message):

@@ -129,7 +129,8 @@ def kubric_project(point, position, quaternion, k_normalised):
 def test_kubric_export_is_kubric_s_worker_layout_of_our_scenes(full, scenes, tmp_path):
     out = tmp_path / "kubric"
     assert export("kubric", full, out)[0] == 0
-    assert sorted(p.name for p in out.iterdir()) == sorted(scenes)  # nothing else in OUT
+    # nothing else in OUT but the marker of c4d_core.ownership (a file: readers list folders)
+    assert sorted(p.name for p in out.iterdir()) == [".c4d-output.json", *sorted(scenes)]
     h, w = SIZE
     for name, s in scenes.items():
         folder = out / name
@@ -304,7 +305,7 @@ def test_an_export_refuses_foreign_folders_missing_layers_and_unknown_formats(fu
     assert not (tmp_path / "a").exists()  # nothing left behind
     (tmp_path / "b").mkdir()
     (tmp_path / "b" / "notes.txt").write_text("mine")
-    refused("cotracker", full, tmp_path / "b", "is not empty", "notes.txt")
+    refused("cotracker", full, tmp_path / "b", "holds files that c4d did not write", "notes.txt")
     assert [p.name for p in (tmp_path / "b").iterdir()] == ["notes.txt"]
     assert export("cotracker", full, tmp_path / "c")[0] == 0
     refused("kubric", full, tmp_path / "c", "a cotracker export")

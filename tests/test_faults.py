@@ -115,7 +115,7 @@ def test_a_flipped_byte_in_rgb_is_caught_by_inspect_check(tmp_path, capsys):
     assert main(["inspect", str(shards), "--check", "--no-progress"]) == 1
     out = capsys.readouterr().out
     assert "train-00000001" in out and "CRC-32" in out and "rgb.npy" in out
-    assert "checked 6 scenes: 1 with problems" in out
+    assert "checked 6 scenes in 2 shards: 1 with problems" in out
 
 
 def test_a_deleted_member_is_named_and_training_skips_the_sample(tmp_path, capsys, caplog):
@@ -178,7 +178,7 @@ def test_shards_without_checksums_still_read_with_a_warning(tmp_path, capsys, ca
     shards = shard_copy(tmp_path)
     without_checksums(shards / "train-000000.tar")
     assert main(["inspect", str(shards), "--check", "--no-progress"]) == 0
-    assert "checked 6 scenes: 0 with problems" in capsys.readouterr().out
+    assert "checked 6 scenes in 2 shards: 0 with problems" in capsys.readouterr().out
     assert "3 scenes carry no checksums" in caplog.text
 
 
@@ -567,6 +567,7 @@ def test_resume_with_more_steps_continues_and_a_crash_before_the_first_checkpoin
     # A run that died before its first checkpoint: the rerun starts over without duplicate lines.
     fresh = tmp_path / "fresh"
     fresh.mkdir()
+    (fresh / ".c4d-output.json").write_text('{"format": "c4d-output", "kind": "train"}')
     (fresh / "log.jsonl").write_text('{"step": 1, "lr": 0.1}\n{"step": 2, "lr": 0.1}\n')
     assert main(["train", *TRAIN, f"data.sources=[{shards}]", f"train.out_dir={fresh}",
                  "train.steps=3"]) == 0

@@ -132,5 +132,5 @@ def test_run_into_a_reconstruction_or_a_full_folder_and_scoring_another_scene(tm
     other.mkdir()
     (other / "notes.txt").write_text("kept")
     assert_one_line_error(main([*command("run", other, inputs), "--overwrite"]),
-                          capsys.readouterr().err, str(other), "not a reconstruction")
+                          capsys.readouterr().err, str(other), "files that c4d did not write")
     assert [p.name for p in other.iterdir()] == ["notes.txt"]

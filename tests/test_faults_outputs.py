@@ -170,7 +170,7 @@ def test_a_format_3_scene_without_checksums_is_a_problem(tmp_path, capsys):
     assert main(["inspect", str(shards), "--check", "--no-progress"]) == 1
     out = capsys.readouterr().out
     assert "train-00000001" in out and "lacks its member 'checksums.json'" in out
-    assert "checked 6 scenes: 1 with problems" in out
+    assert "checked 6 scenes in 2 shards: 1 with problems" in out
 
 
 def test_check_names_a_shard_the_dataset_file_lists_but_the_folder_lacks(tmp_path, capsys):
@@ -179,5 +179,7 @@ def test_check_names_a_shard_the_dataset_file_lists_but_the_folder_lacks(tmp_pat
     (shards / "train-000001.tar").unlink()
     assert main(["inspect", str(shards), "--check", "--no-progress"]) == 1
     out = capsys.readouterr().out
-    assert re.search(r"train-000001\.tar \?: the shard is missing \(3 scenes\)", out), out
-    assert "checked 6 scenes: 1 with problems" in out
+    assert re.search(r"train-000001\.tar: missing, though the dataset file beside it lists it "
+                     r"\(scenes 3\.\.5\)", out), out
+    assert ("checked 6 scenes in 2 shards: 0 with problems (0 problems); 1 shard missing "
+            "(scenes 3..5)") in out

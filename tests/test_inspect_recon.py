@@ -120,7 +120,7 @@ def test_report_writes_videos_plots_and_a_page(tmp_path, recon_dir, box_scene):
     assert len(flythrough) == 20 and _not_blank(flythrough[0])
     assert not np.array_equal(flythrough[0], flythrough[5]), "the virtual camera moves"
     ply = cv2.imread(str(out / "ply.png"))
-    assert ply.shape == (384, 384, 3) and _not_blank(ply)
+    assert ply.shape == (26 + 384, 384, 3) and _not_blank(ply)  # a title above the rendered points
     page = (out / "index.html").read_text()
     assert "flythrough.webm" in page and "trajectory.png" in page
     assert "Reconstruction of " in page and "scene 0" in page  # the title names the scene, not a path

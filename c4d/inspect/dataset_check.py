@@ -8,13 +8,14 @@
   object coordinates outside [0,1] or not 0 on the background, boxes and visible pixels that
   disagree with the segmentation, events naming no object).
 - `check_dataset`: decode and validate every sample, listing every problem (corrupt member,
-  truncated or missing shard, ...) with shard and scene key, without stopping at the first.
+  truncated shard, ...) with shard and scene key, without stopping at the first, and the shards
+  the dataset file lists that are missing.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -255,11 +256,14 @@ def _event_problems(scene: Scene) -> list[str]:
 
 @dataclass
 class CheckResult:
-    """Outcome of `check_dataset`: number of samples read and every problem found."""
+    """Outcome of `check_dataset`: number of samples and shards read, every problem found and
+    the shards missing."""
 
     num_samples: int
     problems: list[tuple[str, str, str]]  # (shard, scene key, problem)
     num_unverified: int = 0  # samples without checksums (shards of format 2 or older)
+    num_shards: int = 0  # shards read (or found unreadable)
+    missing: list[Path] = field(default_factory=list)  # shards the dataset file lists, absent
 
     @property
     def num_bad_samples(self) -> int:
@@ -267,15 +271,13 @@ class CheckResult:
 
 
 def check_dataset(source, cfg, split: str | None = None, progress: bool = True) -> CheckResult:
-    """Decode and validate every sample of `source`; never stops at the first problem. A shard
-    that the dataset file of a `source` folder lists but that is absent is a problem too."""
+    """Decode and validate every sample of `source`; never stops at the first problem. The
+    shards that the dataset file of a `source` folder lists but that are absent are counted
+    apart (`CheckResult.missing`), not as problems of scenes."""
     problems: list[tuple[str, str, str]] = []
-    if isinstance(source, (str, Path)) and Path(source).is_dir():
-        for path in shards.missing_shards(shards.list_shards(source, split)):
-            held = shards.scenes_in_shard(path)
-            problems.append((str(path), "?", f"the shard is missing ({held or '?'} scenes), "
-                             "though the dataset file beside it lists it; rerun the same "
-                             "`c4d datagen` command to write it"))
+    listed = shards.list_shards(source, split)
+    folder = isinstance(source, (str, Path)) and Path(source).is_dir()
+    missing = shards.missing_shards(listed) if folder else []
     count = unverified = 0
     for sample in tqdm(iter_dataset(source, split), desc="check", unit="scene", disable=not progress):
         count += 1
@@ -284,4 +286,4 @@ def check_dataset(source, cfg, split: str | None = None, progress: bool = True) 
             problems.append((sample.shard, sample.key, sample.error))
             continue
         problems += [(sample.shard, sample.key, p) for p in validate_scene(sample.scene, cfg)]
-    return CheckResult(count, problems, unverified)
+    return CheckResult(count, problems, unverified, len(listed), missing)

@@ -79,6 +79,7 @@ def track_curves(path: str | os.PathLike, scene: Scene, max_tracks: int) -> Path
             axes[0].axhline(threshold, color="k", ls="--", lw=1, label=f"threshold {threshold}")
             axes[0].legend(fontsize=8)
         axes[0].set_yscale("symlog", linthresh=1e-3)
+        axes[0].set_ylim(bottom=0)  # a displacement is a distance: no negative ticks
     axes[0].set_title("world displacement per frame (red: moves at some frame)", fontsize=10)
     axes[0].set_xlabel("frame")
 
@@ -101,20 +102,20 @@ def track_curves(path: str | os.PathLike, scene: Scene, max_tracks: int) -> Path
     return _save(fig, path)
 
 
-def trajectory_plot(path: str | os.PathLike, positions: np.ndarray,
+def trajectory_plot(path: str | os.PathLike, positions: np.ndarray, label: str,
                     reference: np.ndarray | None = None, title: str = "camera trajectory",
                     unit: str = "world units", others: dict[str, np.ndarray] | None = None) -> Path:
-    """Camera centres (T,3) as a top view (x, y) and a side view (x, z), optionally with a
-    ground-truth trajectory (T,3) and `others` (label -> (T,3), e.g. GA only) already aligned to
-    the same frame; axes in `unit`."""
+    """Camera centres (T,3) of the method named `label` (e.g. "C4D") as a top view (x, y) and a
+    side view (x, z), optionally with a ground-truth trajectory (T,3) and `others` (label -> (T,3),
+    e.g. GA only) already aligned to the same frame; axes in `unit`."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
     for ax, (i, j, name) in zip(axes, ((0, 1, "top view (x, y)"), (0, 2, "side view (x, z)"))):
         if reference is not None:
             ax.plot(reference[:, i], reference[:, j], "-", color="#999999", lw=5, alpha=0.6,
                     label="ground truth")  # wide, so it shows under a perfect estimate
-        for (label, other), color in zip((others or {}).items(), ("#0077bb", "#009988", "#ee7733")):
-            ax.plot(other[:, i], other[:, j], "--", color=color, lw=1.2, label=label)
-        ax.plot(positions[:, i], positions[:, j], "-o", color="#cc3311", ms=2, label="estimated")
+        for (other_label, other), color in zip((others or {}).items(), ("#0077bb", "#009988", "#ee7733")):
+            ax.plot(other[:, i], other[:, j], "--", color=color, lw=1.2, label=other_label)
+        ax.plot(positions[:, i], positions[:, j], "-o", color="#cc3311", ms=2, label=label)
         ax.plot(positions[:1, i], positions[:1, j], "s", color="#cc3311", ms=6, label="first frame")
         ax.set_title(name, fontsize=10)
         ax.set_xlabel(f"{'xyz'[i]} ({unit})", fontsize=9)

@@ -5,8 +5,8 @@ lists what is missing or inconsistent, and writes into OUT:
 `overview.webm` (frames with tracks | depth | motion mask), `depth.webm`, `masks.webm`,
 `trajectory.png` (with the aligned ground truth when given), `flythrough.webm` (the 4D point
 cloud: static background once plus each frame's moving points, seen from an orbiting virtual
-camera, rendered by `point_render`), `ply.png` (scene.ply read back with trimesh and rendered),
-`summary.json` and `index.html`.
+camera, rendered by `point_render`), `ply.png` (scene.ply read back with trimesh and rendered,
+with a title and the world axes), `summary.json` and `index.html`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from c4d_pipeline.eval_metrics import align_trajectory, pose_metrics
 from c4d_pipeline.eval_recon import scene_frame_indices
 from c4d_pipeline.outputs import Reconstruction, read_reconstruction
 
-CAMERA_COLOR = (30, 30, 30)  # camera centres in the fly-through
+AXIS_COLORS = ((230, 40, 40), (40, 170, 40), (40, 90, 235))  # RGB of the world x, y, z axes in ply.png
+OBJECTIVES = ("ga", "cma", "cts", "pts")  # C4D's objectives, as report.json's loss curves name them
 
 
 # --------------------------------------------------------------------------------------------
@@ -82,7 +83,8 @@ def flythrough_frames(recon: Reconstruction, cfg) -> np.ndarray | None:
     """The 4D point cloud from an orbiting virtual camera while time runs: uint8 (V,H,W,3).
 
     Static background (pixels outside the motion mask, all frames, subsampled once) plus the
-    moving points of the current frame; camera centres are drawn as dark dots. `cfg`: the
+    moving points of the current frame. The estimated cameras are not drawn: the virtual camera
+    starts behind and above the first one, so they would lie below its view. `cfg`: the
     `flythrough` section of the inspect config.
     """
     if recon.points is None or recon.cam_to_world is None:
@@ -101,7 +103,6 @@ def flythrough_frames(recon: Reconstruction, cfg) -> np.ndarray | None:
     static = good & ~dynamic
     pick = _subsample(rng, int(static.sum()), cfg.static_points)
     static_points, static_colors = recon.points[static][pick], colors[static][pick]
-    centers = recon.cam_to_world[:, :3, 3]  # (T,3)
     scene_points = static_points if len(static_points) else recon.points[good]
     if len(scene_points) == 0:
         return None
@@ -118,24 +119,60 @@ def flythrough_frames(recon: Reconstruction, cfg) -> np.ndarray | None:
         t = min(num_frames - 1, v * num_frames // num_views)
         moving = good[t] & dynamic[t]
         pick_t = _subsample(rng, int(moving.sum()), cfg.dynamic_points)
-        points = np.concatenate([static_points, recon.points[t][moving][pick_t], centers])
-        point_colors = np.concatenate([static_colors, colors[t][moving][pick_t],
-                                       np.tile(CAMERA_COLOR, (num_frames, 1))]).astype(np.uint8)
+        points = np.concatenate([static_points, recon.points[t][moving][pick_t]])
+        point_colors = np.concatenate([static_colors, colors[t][moving][pick_t]]).astype(np.uint8)
         image = point_render.render_points(points, point_colors, intrinsics, pose, (out_h, out_w),
                                            cfg.splat_radius)
         views.append(draw.label_image(image, f"frame {t}"))
     return np.stack(views)
 
 
+def _round_length(value: float) -> float:
+    """The largest of 1, 2, 5 times a power of ten that is at most `value` (> 0)."""
+    power = 10.0 ** np.floor(np.log10(value))
+    return max(step * power for step in (1, 2, 5) if step * power <= value)
+
+
+def axes_length(points: np.ndarray, center: np.ndarray) -> float:
+    """Length of the drawn world axes, in scene units: the round number (1, 2 or 5 times a power
+    of ten) at most the median distance of the points (M,3) from `center` (3,)."""
+    spread = float(np.median(np.linalg.norm(points - center, axis=1)))
+    return _round_length(spread) if spread > 0 else 1.0
+
+
 def ply_picture(recon: Reconstruction, cfg) -> np.ndarray | None:
-    """scene.ply as read back by trimesh, from behind and above the first camera: (H,W,3) uint8."""
+    """scene.ply as read back by trimesh, from behind and above the first camera, under a title:
+    (26 + H, W, 3) uint8. The world x, y, z axes (`AXIS_COLORS`, `axes_length` long) start at the
+    points' median and are labelled at their tips."""
     if recon.ply_points is None or recon.cam_to_world is None:
         return None
-    pose, _ = _viewpoint(recon.cam_to_world, np.median(recon.ply_points, axis=0), cfg)
+    center = np.median(recon.ply_points, axis=0)
+    pose, _ = _viewpoint(recon.cam_to_world, center, cfg)
     size = cfg.min_height * 3 // 2
-    return point_render.render_points(recon.ply_points, recon.ply_colors,
-                                      _virtual_intrinsics(size, size, cfg), pose, (size, size),
-                                      cfg.splat_radius)
+    intrinsics = _virtual_intrinsics(size, size, cfg)
+    image = point_render.render_points(recon.ply_points, recon.ply_colors, intrinsics, pose,
+                                       (size, size), cfg.splat_radius)
+    length = axes_length(recon.ply_points, center)
+    ends = center + length * np.eye(3)  # (3,3): the tips of the x, y, z axes
+    uv, depth = geometry.project(np.concatenate([center[None], ends]), intrinsics, pose)
+    if (depth > point_render.NEAR).all():
+        draw.draw_axes(image, uv[0], uv[1:], "xyz", AXIS_COLORS)
+    title = f"scene.ply: {len(recon.ply_points)} points; world axes x, y, z {length:g} units long"
+    return np.concatenate([draw.title_strip(size, title), image])
+
+
+def method_name(report: dict) -> str:
+    """The method a reconstruction ran, by the objectives whose losses report.json records:
+    "C4D" (all of them, or when none is recorded: `c4d run` runs C4D), "GA only", or the
+    objectives it used, e.g. "GA + CTS + PTS"."""
+    losses = report.get("losses")
+    used = {name for curves in (losses.values() if isinstance(losses, dict) else ())
+            if isinstance(curves, dict) for name in curves if name in OBJECTIVES}
+    if not used or used == set(OBJECTIVES):
+        return "C4D"
+    if used == {"ga"}:
+        return "GA only"
+    return " + ".join(name.upper() for name in OBJECTIVES if name in used)
 
 
 def ground_truth_trajectory(recon: Reconstruction, scene) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -171,7 +208,8 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
     if overview is not None:
         written["overview"] = write_video(out / f"overview{video_ext}", overview, fps)
     if recon.depth is not None:
-        depth = draw.colorize_depth(recon.depth)
+        factor = draw.display_scale(recon.depth.shape[1], cfg.min_panel_height)  # as the overview,
+        depth = draw.upscale(draw.colorize_depth(recon.depth), factor)  # so the key below fits
         keys = draw.key_strip(depth.shape[2], depth=True)
         written["depth"] = write_video(out / f"depth{video_ext}", np.concatenate(
             [depth, np.broadcast_to(keys, (len(depth), *keys.shape))], axis=1), fps)
@@ -181,13 +219,14 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
 
     pose_errors, other_errors = None, {}
     if recon.cam_to_world is not None:
+        method = method_name(recon.report)
         estimated, truth, title = recon.cam_to_world, None, "camera trajectory"
         unit = "reconstruction units"
         if gt_scene is not None:
             try:
                 estimated, truth, pose_errors = ground_truth_trajectory(recon, gt_scene)
                 title = (f"camera trajectory of {gt_name}, Sim(3)-aligned to the truth "
-                         f"(ATE {pose_errors['ate']:.3g})")
+                         f"({method} ATE {pose_errors['ate']:.3g})")
                 unit = "scene units"
             except UserError as exc:
                 recon.problems.append(f"ground truth not drawn: {exc}")
@@ -204,8 +243,8 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
         if other_errors:
             title += "; " + ", ".join(f"{k} ATE {v['ate']:.3g}" for k, v in other_errors.items())
         written["trajectory"] = plots.trajectory_plot(
-            out / "trajectory.png", estimated[:, :3, 3], None if truth is None else truth[:, :3, 3], title,
-            unit, others)
+            out / "trajectory.png", estimated[:, :3, 3], method,
+            None if truth is None else truth[:, :3, 3], title, unit, others)
     flythrough = flythrough_frames(recon, cfg.flythrough)
     if flythrough is not None:
         written["flythrough"] = write_video(out / f"flythrough{video_ext}", flythrough, fps)
@@ -242,10 +281,13 @@ def _write_page(out: Path, recon: Reconstruction, summary: dict, written: dict[s
     captions = {
         "overview": "Frames with tracks (blue static, red moving; hollow = occluded), depth, motion mask.",
         "flythrough": "4D point cloud: static background plus the moving points of the current "
-                      "frame, from an orbiting virtual camera; dark dots are the estimated cameras.",
-        "trajectory": "Estimated camera centres (red), other methods when compared, and ground truth "
-                      "(grey) when given, all Sim(3)-aligned to the truth.",
-        "ply": "scene.ply read back with trimesh, seen from behind the first camera.",
+                      "frame, from an orbiting virtual camera that starts behind and above the "
+                      "first camera (the camera path is in the trajectory plot).",
+        "trajectory": f"Camera centres of this reconstruction ({method_name(recon.report)}, red), "
+                      "other methods when compared, and ground truth (grey) when given, all "
+                      "Sim(3)-aligned to the truth.",
+        "ply": "scene.ply read back with trimesh, seen from behind and above the first camera, "
+               "with the world axes.",
         "depth": "Depth (near red, far blue).",
         "masks": "Motion masks (red = dynamic).",
     }

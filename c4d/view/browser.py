@@ -72,10 +72,13 @@ class Browser:
 
         flags = [*FLAGS, f"--user-data-dir={self._profile.name}", f"--window-size={width},{height}",
                  *(("--no-sandbox",) if os.geteuid() == 0 else ()), "about:blank"]  # root: no sandbox
+        self._executable = executable
+        self._stderr = Path(self._profile.name) / "c4d-stderr.txt"  # its last line: why it ended
         try:
-            self._process = subprocess.Popen(
-                [executable, *flags], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL, close_fds=False, preexec_fn=child_fds)
+            with open(self._stderr, "wb") as stderr:
+                self._process = subprocess.Popen(
+                    [executable, *flags], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                    stderr=stderr, close_fds=False, preexec_fn=child_fds)
         except OSError as exc:
             for fd in (self._in, self._out):
                 os.close(fd)
@@ -120,7 +123,10 @@ class Browser:
         message = {"id": self._next_id, "method": method, "params": params or {}}
         if session is not None:
             message["sessionId"] = session
-        os.write(self._out, json.dumps(message).encode() + b"\0")
+        try:
+            os.write(self._out, json.dumps(message).encode() + b"\0")
+        except BrokenPipeError:  # it closed its end: it has exited
+            raise self._ended(method) from None
         deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
         while True:
             reply = self._read(deadline, method)
@@ -138,11 +144,24 @@ class Browser:
                 raise UserError(f"Chromium did not answer {waiting_for} within {self.timeout:.0f} s")
             chunk = os.read(self._in, 1 << 20)
             if not chunk:
-                raise UserError(f"Chromium ended while answering {waiting_for} (exit code "
-                                f"{self._process.poll()})")
+                raise self._ended(waiting_for)
             self._buffer += chunk
         message, self._buffer = self._buffer.split(b"\0", 1)
         return json.loads(message)
+
+    def _ended(self, method: str) -> UserError:
+        """The `UserError` for the browser gone before answering `method`: its path, exit code
+        and the last line it printed on stderr."""
+        try:
+            code = self._process.wait(5)
+        except subprocess.TimeoutExpired:
+            code = "none yet: it closed its protocol pipe"
+        lines = self._stderr.read_text(errors="replace").splitlines() if self._stderr.exists() else []
+        last = next((line.strip() for line in reversed(lines) if line.strip()), None)
+        said = f"its last line on stderr: {last}" if last else "nothing on stderr"
+        return UserError(f"the browser {self._executable} exited before answering {method} (exit "
+                         f"code {code}; {said}); check that it runs headless there, or set "
+                         "C4D_BROWSER to another Chromium or Chrome")
 
     def open(self, url: str) -> "Page":
         """A new tab showing `url`, once its load event has fired."""
@@ -259,7 +278,8 @@ def screenshot_file(html: Path, png: Path, frame: int, width: int, height: int) 
     """Open the viewer page `html` in headless Chromium with a `width` x `height` viewport, show
     `frame` and write the viewport to `png`; returns the page's stats. An error the page reports
     is one `UserError`."""
-    from c4d_core.video import write_image
+    from c4d_core.ownership import write_png
+    from c4d_core.video import encode_image
 
     with Browser(width, height) as browser:
         page = browser.open(Path(html).resolve().as_uri())
@@ -271,7 +291,7 @@ def screenshot_file(html: Path, png: Path, frame: int, width: int, height: int) 
         if errors:
             raise UserError(f"the viewer page reported errors: {errors[0]}")
         stats = page.evaluate("c4dView.stats")
-    write_image(png, image)
+    write_png(png, encode_image(image, ".png"), "view")  # marked: a later --screenshot may replace it
     return stats
 
 

@@ -13,12 +13,14 @@ from __future__ import annotations
 import argparse
 import errno
 import logging
+import math
 import webbrowser
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 from c4d.view import scene_data
-from c4d_core.errors import UserError
+from c4d_core.errors import UserError, refuse_unused
+from c4d_core.ownership import check_file
 
 log = logging.getLogger(__name__)
 
@@ -43,12 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("source", metavar="SOURCE",
                         help="a reconstruction (the OUT folder of `c4d run` or `c4d demo`) or a "
                              "shard set of `c4d datagen` (a folder of .tar shards, a .tar, a glob)")
-    parser.add_argument("--scene", type=int, default=0, metavar="I",
+    parser.add_argument("--scene", type=int, metavar="I",
                         help="shard sets: the scene to show (0-based, reading order; default 0)")
     parser.add_argument("--gt", metavar="DATA",
                         help="reconstructions: the shard set holding the video's ground truth, "
                              "drawn beside it (the reconstruction Sim(3)-aligned onto it)")
-    parser.add_argument("--scene-index", type=int, default=0, metavar="I",
+    parser.add_argument("--scene-index", type=int, metavar="I",
                         help="reconstructions: which scene of --gt (0-based, reading order)")
     parser.add_argument("--stride", type=_positive, default=scene_data.DEFAULT_STRIDE, metavar="S",
                         help="draw every S-th pixel of every S-th row (default "
@@ -56,9 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-points", type=_positive, default=scene_data.DEFAULT_MAX_POINTS,
                         metavar="N", help="at most N points per frame, evenly among those kept "
                                           f"(default {scene_data.DEFAULT_MAX_POINTS})")
-    parser.add_argument("--min-confidence", type=float, default=scene_data.DEFAULT_MIN_CONFIDENCE,
-                        metavar="C", help="reconstructions: draw points of confidence >= C "
-                                          f"(default {scene_data.DEFAULT_MIN_CONFIDENCE:g}: all)")
+    parser.add_argument("--min-confidence", type=float, metavar="C",
+                        help="reconstructions: draw points of confidence >= C "
+                             f"(default {scene_data.DEFAULT_MIN_CONFIDENCE:g}: all)")
     parser.add_argument("--max-tracks", type=int, default=scene_data.DEFAULT_MAX_TRACKS, metavar="N",
                         help=f"at most N 3D tracks (default {scene_data.DEFAULT_MAX_TRACKS}; 0: none)")
     parser.add_argument("--save", type=Path, metavar="FILE.html",
@@ -66,14 +68,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--screenshot", type=Path, metavar="FILE.png",
                         help="draw the page in headless Chromium and write a PNG (needs Chromium)")
     parser.add_argument("--frame", type=int, metavar="T",
-                        help="--screenshot: the frame shown (0-based; default the last, with "
-                             "the whole of every track drawn)")
-    parser.add_argument("--size", type=_size, default=(1280, 800), metavar="WxH",
+                        help="--screenshot: the frame shown, counted from 0 as the page's frame "
+                             "label and the output's file names count (0..frames-1; default the "
+                             "last, with the whole of every track drawn)")
+    parser.add_argument("--size", type=_size, metavar="WxH",
                         help="--screenshot: the picture's size in pixels (default 1280x800)")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT,
+    parser.add_argument("--port", type=int,
                         help=f"serve on 127.0.0.1:PORT (default {DEFAULT_PORT}; 0: any free port)")
     parser.add_argument("--no-browser", action="store_true",
                         help="serve without opening a browser; only print the address")
+
+
+def resolve_options(args, reconstruction: bool) -> None:
+    """Refuse (one `UserError`) an option given where it does nothing: for the other kind of
+    SOURCE (`reconstruction` or shard set), without the option it refines, or for another output
+    than the one asked for; then fill in the defaults of those left out."""
+    serving = args.save is None and args.screenshot is None
+    served = "serving the page (neither --save nor --screenshot)"
+    refuse_unused([
+        ("--scene", args.scene is not None and reconstruction, f"shard sets, and {args.source} "
+         "is a reconstruction (its ground truth: --gt DATA --scene-index I)"),
+        ("--min-confidence", args.min_confidence is not None and not reconstruction,
+         f"reconstructions, and {args.source} is not one"),
+        ("--scene-index", args.scene_index is not None and not args.gt,
+         "--gt DATA (which of its scenes is the video's)"),
+        ("--frame", args.frame is not None and args.screenshot is None, "--screenshot FILE.png"),
+        ("--size", args.size is not None and args.screenshot is None, "--screenshot FILE.png"),
+        ("--port", args.port is not None and not serving, served),
+        ("--no-browser", args.no_browser and not serving, served),
+    ])
+    if args.min_confidence is not None and not math.isfinite(args.min_confidence):
+        raise UserError(f"--min-confidence must be a finite number, got {args.min_confidence}")
+    defaults = {"scene": 0, "scene_index": 0, "size": (1280, 800), "port": DEFAULT_PORT,
+                "min_confidence": scene_data.DEFAULT_MIN_CONFIDENCE}
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
 
 
 def load_view(args) -> scene_data.ViewScene:
@@ -81,13 +111,12 @@ def load_view(args) -> scene_data.ViewScene:
     from c4d_pipeline.outputs import is_reconstruction
 
     if is_reconstruction(args.source):
-        gt, gt_name = None, ""
+        gt = None
         if args.gt:
             from c4d_pipeline.eval_recon import pick_scene
 
             gt = pick_scene(args.gt, args.scene_index)
-            gt_name = f"{args.gt} scene {args.scene_index}"
-        return scene_data.from_reconstruction(args.source, args.min_confidence, gt, gt_name)
+        return scene_data.from_reconstruction(args.source, args.min_confidence, gt, args.scene_index)
     if not Path(args.source).exists() and not any(c in args.source for c in "*?["):
         raise UserError(f"{args.source} does not exist; give the --out folder of `c4d run` / "
                         "`c4d demo` or a shard set of `c4d datagen`")
@@ -98,12 +127,18 @@ def load_view(args) -> scene_data.ViewScene:
         raise UserError(f"{args.source} is neither a reconstruction (no poses_tum.txt, "
                         "pointmaps.npz or report.json) nor a shard set (no .tar shards); give the "
                         "--out folder of `c4d run` / `c4d demo` or of `c4d datagen`")
+    from datagen.shards import not_a_shard
+
+    if Path(args.source).is_file() and (kind := not_a_shard(args.source)):
+        raise UserError(f"{args.source} is neither a reconstruction (a folder) nor a shard (a .tar): "
+                        f"it is {kind}; give the --out folder of `c4d run` / `c4d demo` or a shard "
+                        "set of `c4d datagen`")
     from c4d_pipeline.eval_recon import pick_scene
 
     if args.scene < 0:
         raise UserError(f"--scene must be >= 0, got {args.scene}")
     scene = pick_scene(args.source, args.scene)
-    return scene_data.from_scene(scene, f"{args.source} scene {args.scene}")
+    return scene_data.from_scene(scene, args.source, args.scene)
 
 
 class _PageHandler(BaseHTTPRequestHandler):
@@ -151,7 +186,9 @@ def serve(server: ThreadingHTTPServer, open_browser: bool) -> None:
 
 def run(args) -> int:
     from c4d.view.page import build_page
+    from c4d_pipeline.outputs import is_reconstruction
 
+    resolve_options(args, is_reconstruction(args.source))
     if args.max_tracks < 0:
         raise UserError(f"--max-tracks must be >= 0, got {args.max_tracks}")
     if args.screenshot is not None:
@@ -159,7 +196,10 @@ def run(args) -> int:
 
         if args.screenshot.suffix.lower() != ".png":
             raise UserError(f"--screenshot {args.screenshot}: give a .png file name")
+        check_file(args.screenshot, "view", args.overwrite)
         find_browser()  # no browser: said before the scene is read
+    if args.save is not None:
+        check_file(args.save, "view", args.overwrite)
     server = open_server(args.port) if args.save is None and args.screenshot is None else None
     try:
         view = load_view(args)

@@ -2,9 +2,10 @@
 
 `ViewScene` is one moving point cloud with cameras and tracks in world coordinates (OpenCV camera
 axes): built from a reconstruction (`from_reconstruction`: its pointmaps, confidences, motion
-masks, poses and 3D tracks, optionally Sim(3)-aligned onto a generated scene's ground truth as
-`c4d eval-recon` aligns it) or from a generated scene's own ground truth (`from_scene`: depth
-unprojected with the true poses, the true motion masks and world tracks).
+masks, poses and 3D tracks, optionally Sim(3)-aligned onto a generated scene's ground truth,
+its cameras turned onto the true ones: `align_onto_truth`) or from a generated scene's own ground
+truth (`from_scene`: depth unprojected with the true poses, the true motion masks and world
+tracks).
 
 `encode` reduces it to what the page draws, by the documented rule (`frame_selection`):
 every `stride`-th pixel of every `stride`-th row of each frame, those the builder keeps (confidence
@@ -21,12 +22,15 @@ as uint8 RGB, the tracks' positions in every frame as float16 with uint8 validit
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from c4d_core.errors import UserError
+
+log = logging.getLogger(__name__)
 
 DEFAULT_STRIDE = 2  # every 2nd pixel of every 2nd row
 DEFAULT_MAX_POINTS = 20_000  # per frame: 90 frames stay at 1.8 M points
@@ -91,9 +95,10 @@ def _check_frame_files(recon, folder: Path) -> None:
 
 
 def from_reconstruction(folder: str | Path, min_confidence: float = DEFAULT_MIN_CONFIDENCE,
-                        gt=None, gt_name: str = "") -> ViewScene:
+                        gt=None, gt_index: int = 0) -> ViewScene:
     """The reconstruction in `folder` (the OUT of `c4d run` / `c4d demo`); with `gt` (a generated
-    `Scene`) everything is Sim(3)-aligned onto its ground truth, drawn beside it."""
+    `Scene`, the `gt_index`-th of its shard set) everything is Sim(3)-aligned onto its ground
+    truth (`align_onto_truth`), drawn beside it."""
     from c4d_pipeline.outputs import read_reconstruction
 
     folder = Path(folder)
@@ -111,44 +116,86 @@ def from_reconstruction(folder: str | Path, min_confidence: float = DEFAULT_MIN_
             moving = probability > 0.5
     notes = [f"{len(points)} frames of {points.shape[2]}x{points.shape[1]}; points with "
              f"confidence >= {min_confidence:g}; red: the motion masks' dynamic pixels"]
+    title = f"c4d view: reconstruction {folder.resolve().name}"  # a name, not a machine's path
     gt_poses = gt_intrinsics = None
     if gt is not None:
-        from c4d.inspect.recon_report import ground_truth_trajectory
-        from c4d_pipeline.eval_recon import check_same_scene, scene_frame_indices
+        from c4d_pipeline.eval_metrics import orthonormalise, pose_metrics
+        from c4d_pipeline.eval_recon import check_ground_truth, scene_frame_indices
         from c4d_pipeline.ground_truth import resize_intrinsics
 
+        check_ground_truth(recon, gt)
         indices = scene_frame_indices(recon, gt.num_frames)[0]
-        check_same_scene(recon, gt, indices)
-        aligned, gt_poses, metrics = ground_truth_trajectory(recon, gt)
+        gt_poses = gt.cam_to_world[indices].astype(np.float64)
         gt_intrinsics = resize_intrinsics(gt.intrinsics[indices], gt.image_size, points.shape[1:3])
-        scale, rotation, translation = _similarity(cam_to_world, aligned, metrics["sim3_scale"])
+        scale, rotation, translation = align_onto_truth(cam_to_world, gt_poses)
         points = scale * points @ rotation.T + translation
         if tracks is not None:
             tracks = scale * tracks.astype(np.float64) @ rotation.T + translation
-        cam_to_world = aligned
-        notes.append(f"green: ground truth of {gt_name or 'the scene'}, the reconstruction "
-                     f"Sim(3)-aligned onto it (scale {scale:.3g}, ATE {metrics['ate']:.4f})")
-    keep = (recon.confidence >= min_confidence) & np.isfinite(points).all(-1)
+        cam_to_world = orthonormalise(cam_to_world)
+        cam_to_world[:, :3, :3] = rotation @ cam_to_world[:, :3, :3]
+        cam_to_world[:, :3, 3] = scale * cam_to_world[:, :3, 3] @ rotation.T + translation
+        truth, ate = gt.name(gt_index), pose_metrics(recon.cam_to_world, gt_poses)["ate"]
+        title = f"c4d view: reconstruction of {truth} ({folder.resolve().name})"
+        notes.append(f"green: ground truth of {truth}, the reconstruction Sim(3)-aligned onto its "
+                     f"cameras (scale {scale:.3g}; ATE {ate:.4f}, as c4d eval-recon scores it)")
+    confident = recon.confidence >= min_confidence
+    if not confident.any():
+        raise UserError(f"no point of {folder} has confidence >= {min_confidence:g} (the highest "
+                        f"is {np.nanmax(recon.confidence):.3g}); give a lower --min-confidence")
+    keep = finite_points(confident, points, str(folder), "rerun `c4d run`")
     return ViewScene(
-        title=f"c4d view: {folder}", colors=recon.frames, points=points, keep=keep,
+        title=title, colors=recon.frames, points=points, keep=keep,
         dynamic=recon.masks, cam_to_world=cam_to_world, intrinsics=recon.intrinsics,
         tracks=tracks, tracks_valid=valid, tracks_moving=moving, gt_cam_to_world=gt_poses,
         gt_intrinsics=gt_intrinsics, timestamps=recon.timestamps, notes=notes)
 
 
-def _similarity(pred: np.ndarray, aligned: np.ndarray, scale: float) -> tuple[float, np.ndarray, np.ndarray]:
-    """(s, R (3,3), t (3,)) of the Sim(3) that `align_trajectory` applied: aligned = s R pred + t,
-    read off the first pose (rotation blocks orthonormalised as it does)."""
+def align_onto_truth(pred: np.ndarray, truth: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R (3,3), t (3,)) of the Sim(3) x -> s R x + t that puts the estimated camera-to-world
+    poses `pred` (T,4,4) onto the true ones `truth` (T,4,4) to draw them together: R turns the
+    estimated cameras onto the true ones (the rotation nearest to the sum over frames of
+    R_truth R_pred^T), then s and t fit the camera centres given R (least squares).
+
+    Not the Umeyama fit of the centres alone that ATE is scored after (`align_trajectory`): that
+    fixes R only as far as the centres span space, and a generated scene's camera moves on a
+    straight line (datagen.sampling.CameraSpec), about which the estimated centres' scatter off
+    the line turns R by any angle (a movi-e scene's true cameras were drawn 171 degrees away).
+    A `UserError` where the estimated centres do not move along the true ones (s <= 0)."""
     from c4d_pipeline.eval_metrics import orthonormalise
 
-    first = orthonormalise(pred[:1])[0]
-    rotation = aligned[0, :3, :3] @ first[:3, :3].T
-    return scale, rotation, aligned[0, :3, 3] - scale * rotation @ first[:3, 3]
+    pred, truth = orthonormalise(pred), orthonormalise(truth)
+    u, _, vt = np.linalg.svd(np.einsum("tij,tkj->ik", truth[:, :3, :3], pred[:, :3, :3]))
+    rotation = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    p_mean, g_mean = pred[:, :3, 3].mean(axis=0), truth[:, :3, 3].mean(axis=0)
+    p, g = pred[:, :3, 3] - p_mean, truth[:, :3, 3] - g_mean  # (T,3) centres about their mean
+    spread = np.sum(p * p)
+    scale = float(np.sum(g * (p @ rotation.T)) / spread) if spread > 0 else 0.0
+    if not scale > 0:
+        raise UserError("the reconstruction's camera centres do not move along the ground truth's "
+                        f"(fitted scale {scale:.3g}), so no Sim(3) puts them onto it; leave out --gt")
+    return scale, rotation, g_mean - scale * rotation @ p_mean
 
 
-def from_scene(scene, name: str) -> ViewScene:
-    """A generated `Scene` from its ground truth: depth unprojected with the true intrinsics and
-    poses, the true motion masks (red), the world tracks with their mobility labels."""
+def finite_points(keep: np.ndarray, points: np.ndarray, name: str, fix: str) -> np.ndarray:
+    """`keep` (T,H,W) less the pixels whose world point (T,H,W,3) is not finite (infinite or NaN
+    depth), with a warning counting those; a `UserError` (ending in `fix`) where none is left."""
+    finite = np.isfinite(points).all(-1)
+    dropped, candidates = int((keep & ~finite).sum()), int(keep.sum())
+    keep = keep & finite
+    if not keep.any():
+        raise UserError(f"{name}: none of its {candidates} points has a finite position (infinite "
+                        f"or NaN depth), so there is nothing to draw; {fix}")
+    if dropped:
+        log.warning("%s: %d of %d points have an infinite or NaN position and are not drawn",
+                    name, dropped, candidates)
+    return keep
+
+
+def from_scene(scene, source: str, index: int) -> ViewScene:
+    """The `index`-th generated `Scene` of the shard set `source` from its ground truth: depth
+    unprojected with the true intrinsics and poses, the true motion masks (red), the world tracks
+    with their mobility labels."""
+    name = f"{source} scene {index}"  # in messages: where it was read
     from c4d_core.geometry import unproject_depth_map
     from c4d_pipeline.ground_truth import ground_truth_motion_masks
 
@@ -156,9 +203,11 @@ def from_scene(scene, name: str) -> ViewScene:
         raise UserError(f"{name} has no depth maps, so there is no point cloud to show")
     points = np.stack([unproject_depth_map(d, k, p) for d, k, p in
                        zip(scene.depth, scene.intrinsics, scene.cam_to_world)])  # (T,H,W,3)
+    keep = finite_points(scene.depth > 0, points, name, "regenerate it with `c4d datagen`")
     dynamic = None
     if scene.segmentation is not None and scene.object_to_world is not None:
-        dynamic = ground_truth_motion_masks(scene)
+        with np.errstate(invalid="ignore"):  # non-finite points (not drawn) compare as False
+            dynamic = ground_truth_motion_masks(scene)
     tracks = valid = moving = None
     if scene.tracks_world is not None:
         tracks = scene.tracks_world.swapaxes(0, 1)  # (T,N,3)
@@ -167,8 +216,8 @@ def from_scene(scene, name: str) -> ViewScene:
     fps = scene.meta.get("fps")
     h, w = scene.image_size
     return ViewScene(
-        title=f"c4d view: {name}", colors=scene.rgb, points=points,
-        keep=(scene.depth > 0) & np.isfinite(points).all(-1), dynamic=dynamic,
+        title=f"c4d view: {scene.name(index)}", colors=scene.rgb, points=points,
+        keep=keep, dynamic=dynamic,
         cam_to_world=scene.cam_to_world.astype(np.float64), intrinsics=scene.intrinsics,
         tracks=tracks, tracks_valid=valid, tracks_moving=moving,
         timestamps=None if not fps else np.arange(scene.num_frames) / float(fps),

@@ -26,7 +26,8 @@ def export_format(name: str) -> ExportFormat:
     return FORMATS[name]
 
 
-def export(name: str, data: str | Path, out: str | Path) -> tuple[int, int]:
+def export(name: str, data: str | Path, out: str | Path, overwrite: bool = False) -> tuple[int, int]:
     """Export the dataset `data` as the format `name` into `out`; returns (scenes written, scenes
-    already there from an earlier run)."""
-    return _export(export_format(name), data, out)
+    already there from an earlier run). `overwrite`: replace another command's output there
+    (`c4d_core.ownership`)."""
+    return _export(export_format(name), data, out, overwrite)

@@ -12,6 +12,7 @@ is written. A file format (tapvid) writes one file atomically.
 
 from __future__ import annotations
 
+import io
 import itertools
 import json
 import logging
@@ -25,7 +26,8 @@ import numpy as np
 from tqdm import tqdm
 
 from c4d_core.errors import UserError
-from c4d_core.files import atomic_path, remove_empty_folders, staged_folder, write_json
+from c4d_core.files import atomic_path, disk_error, staged_folder, write_json
+from c4d_core.ownership import MARKER, check_file, output_folder
 from datagen.scene import Scene
 from datagen.shards import decode_scene, iter_samples, list_shards, scenes_in_shard
 
@@ -69,12 +71,31 @@ class ExportFormat:
     write_file: Callable[[Iterator[tuple[str, Scene]], Path], int] | None = None
 
 
+def write_member(path: Path, data: bytes) -> None:
+    """Write one file of a staged scene folder (in place: the folder is renamed when complete),
+    its bytes encoded in memory (`in_memory`): the libraries' own file writes answer a full disk
+    with a bare False or an empty file (OpenCV), or an OSError without its errno (numpy). A disk
+    error becomes `disk_error`'s one line naming the file."""
+    try:
+        path.write_bytes(data)
+    except OSError as exc:
+        raise disk_error(path, exc) from exc
+
+
+def in_memory(save: Callable[[io.BytesIO], Any]) -> bytes:
+    """The bytes `save(file)` writes into a file object (`PIL.Image.save`, `np.save`)."""
+    buffer = io.BytesIO()
+    save(buffer)
+    return buffer.getvalue()
+
+
 def write_png(path: Path, rgb: np.ndarray) -> None:
-    """An RGB(A) PNG of uint8 or uint16 (H,W,3|4) channels in RGB(A) order (inside a staged
-    scene folder, so written in place)."""
+    """An RGB(A) PNG of uint8 or uint16 (H,W,3|4) channels in RGB(A) order (`write_member`)."""
     channels = [2, 1, 0, 3][:rgb.shape[-1]]
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., channels])):
-        raise OSError(f"cannot write {path}")
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[..., channels]))
+    if not ok:
+        raise ValueError(f"OpenCV cannot encode a {rgb.dtype} {rgb.shape} image as PNG ({path})")
+    write_member(path, data.tobytes())
 
 
 def source_of(meta: dict[str, Any]) -> dict[str, Any]:
@@ -179,6 +200,8 @@ def _claim_folder(fmt: ExportFormat, out: Path, source: dict[str, Any]) -> set[s
                         "choose a new or empty folder")
     finished = set()
     for entry in sorted(out.iterdir()) if out.is_dir() else ():
+        if entry.name == MARKER:
+            continue  # the folder's own marker (c4d_core.ownership)
         name = entry.name.removesuffix(PARTIAL)
         record = _read_record(entry) if entry.is_dir() and name.isdigit() else None
         if record == {"format": fmt.name, "source": source, "scene": name}:
@@ -197,34 +220,29 @@ def _claim_folder(fmt: ExportFormat, out: Path, source: dict[str, Any]) -> set[s
 
 
 def export_folders(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, int]:
-    """Export every scene of `data` into `out/NAME/`, skipping finished ones; returns (written,
-    already there). An OUT this call created is removed again if it fails before a scene is done."""
+    """Export every scene of `data` into `out/NAME/` (claimed by the caller), skipping finished
+    ones; returns (written, already there)."""
     scenes = _Scenes(fmt, data)
     finished = _claim_folder(fmt, out, scenes.source)
-    created = not out.exists()
     written = 0
-    try:
-        for name, scene in _progress(fmt, scenes.pending(finished), scenes.total, len(finished)):
-            with staged_folder(out / name) as stage:  # creates OUT too
-                write_json(stage / RECORD, {"format": fmt.name, "source": scenes.source,
-                                            "scene": name})
-                fmt.write_scene(scene, stage, name)
-            written += 1
-    except BaseException:
-        if created:
-            remove_empty_folders(out)
-        raise
+    for name, scene in _progress(fmt, scenes.pending(finished), scenes.total, len(finished)):
+        with staged_folder(out / name) as stage:
+            write_json(stage / RECORD, {"format": fmt.name, "source": scenes.source, "scene": name})
+            fmt.write_scene(scene, stage, name)
+        written += 1
     return written, scenes.skipped
 
 
-def export_file(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, int]:
+def export_file(fmt: ExportFormat, data: str | Path, out: Path, overwrite: bool) -> tuple[int, int]:
     """Export every scene of `data` into the one file `out`, written atomically; returns
-    (written, 0). An existing `out` is refused."""
+    (written, 0). An existing `out` is refused unless `overwrite` (it cannot carry a marker)."""
     if out.is_dir():
         raise UserError(f"{out} is a folder; the {fmt.name} export writes one file: give a file "
                         "name such as OUT.pkl")
-    if out.exists():
-        raise UserError(f"{out} already exists; remove it or choose another name")
+    if out.exists() and not overwrite:
+        raise UserError(f"{out} already exists; remove it, choose another name, or pass "
+                        "--overwrite to replace it")
+    check_file(out, f"export-{fmt.name}", overwrite)  # not inside another command's folder
     scenes = _Scenes(fmt, data)
     items = _progress(fmt, scenes.pending(), scenes.total, 0)
     first = next(items)  # decoded and checked before the temporary file (and its folder) is made
@@ -233,13 +251,18 @@ def export_file(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, in
     return written, 0
 
 
-def export(fmt: ExportFormat, data: str | Path, out: str | Path) -> tuple[int, int]:
+def export(fmt: ExportFormat, data: str | Path, out: str | Path,
+           overwrite: bool = False) -> tuple[int, int]:
     """Export the dataset `data` (a shard folder, shard, glob or list, as `datagen.read_scenes`
-    takes) as `fmt` into `out`; returns (scenes written, scenes already there)."""
+    takes) as `fmt` into `out`; returns (scenes written, scenes already there). `overwrite`:
+    replace another command's output at `out` (`c4d_core.ownership`)."""
     start = time.perf_counter()
     out = Path(out)
-    run = export_folders if fmt.write_scene is not None else export_file
-    written, skipped = run(fmt, data, out)
+    if fmt.write_scene is None:
+        written, skipped = export_file(fmt, data, out, overwrite)
+    else:
+        with output_folder(out, f"export-{fmt.name}", overwrite):
+            written, skipped = export_folders(fmt, data, out)
     log.info("exported %d scenes as %s to %s in %.0f s%s", written, fmt.name, out,
              time.perf_counter() - start, f" ({skipped} already there)" if skipped else "")
     return written, skipped

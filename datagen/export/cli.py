@@ -26,5 +26,5 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    export(args.format, args.data, args.out)
+    export(args.format, args.data, args.out, args.overwrite)
     return 0

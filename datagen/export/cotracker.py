@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.export.base import ExportFormat, write_png
+from datagen.export.base import ExportFormat, in_memory, write_member, write_png
 from datagen.scene import Scene
 
 
@@ -30,9 +30,9 @@ def write_scene(scene: Scene, folder: Path, name: str) -> None:
     frames.mkdir()
     for t, frame in enumerate(scene.rgb):
         write_png(frames / f"{t:05d}.png", frame)
-    np.save(folder / f"{name}.npy",
-            {"coords": scene.tracks.astype(np.float32), "visibility": scene.occluded.astype(bool),
-             "moving": scene.moving.astype(bool)}, allow_pickle=True)
+    labels = {"coords": scene.tracks.astype(np.float32), "visibility": scene.occluded.astype(bool),
+              "moving": scene.moving.astype(bool)}
+    write_member(folder / f"{name}.npy", in_memory(lambda fh: np.save(fh, labels, allow_pickle=True)))
 
 
 FORMAT = ExportFormat(

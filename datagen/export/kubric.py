@@ -32,7 +32,7 @@ from PIL import Image
 from c4d_core.errors import UserError
 from c4d_core.files import write_json
 from c4d_core.geometry import matrix_to_quat, pixel_grid
-from datagen.export.base import ExportFormat, write_png
+from datagen.export.base import ExportFormat, in_memory, write_member, write_png
 from datagen.scene import Scene
 
 BLENDER_AXES = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> Blender's (right-multiplied)
@@ -180,10 +180,12 @@ def write_scene(scene: Scene, folder: Path, name: str) -> None:
     alpha = np.full((h, w, 1), 255, np.uint8)
     for t in range(scene.num_frames):
         write_png(folder / f"rgba_{t:05d}.png", np.concatenate([scene.rgb[t], alpha], axis=-1))
-        Image.fromarray(depth[t]).save(folder / f"depth_{t:05d}.tiff")
+        write_member(folder / f"depth_{t:05d}.tiff",
+                     in_memory(lambda fh: Image.fromarray(depth[t]).save(fh, format="TIFF")))
         image = Image.fromarray(segmentation[t])
         image.putpalette(palette.tobytes())
-        image.save(folder / f"segmentation_{t:05d}.png")
+        write_member(folder / f"segmentation_{t:05d}.png",
+                     in_memory(lambda fh: image.save(fh, format="PNG")))
         write_png(folder / f"forward_flow_{t:05d}.png", forward[t])
         write_png(folder / f"backward_flow_{t:05d}.png", backward[t])
         write_png(folder / f"normal_{t:05d}.png", normal[t])

@@ -14,7 +14,9 @@ anything else (a class that could run code when built) is refused in one line th
 turn a file you trust into a plain one (`CONVERT_HINT`); the full unpickler is never used.
 
 A folder or a missing path, and why `torch.load` failed, are named as every reader of the project
-names them (`dynpt.torch_files`).
+names them (`dynpt.torch_files`). A training state of `c4d pretrain-pointmaps` (`last.pt`) is
+refused, naming the network file its run writes (`pointmap_net.pth`), rather than read as bare
+weights of guessed sizes.
 """
 
 from __future__ import annotations
@@ -122,6 +124,23 @@ def _torch_load(path: Path, map_location: Any) -> Any:
         return torch.load(path, map_location=map_location, weights_only=True)
 
 
+# `c4d pretrain-pointmaps` saves its training state (`last.pt`, for --resume) as the network's
+# weights under 'model' with these beside them and no 'args'; read as a bare state dict it would
+# run with guessed sizes (512 pixels), so it is refused, naming the run's network file instead.
+TRAINING_STATE_KEYS = frozenset({"optimizer", "schedule", "step"})
+PRETRAINED_NETWORK = "pointmap_net.pth"  # the network file beside it, written when the run ends
+
+
+def _refuse_training_state(path: Path) -> None:
+    """The `UserError` for a `c4d pretrain-pointmaps` training state passed as a network."""
+    network = path.parent / PRETRAINED_NETWORK
+    fix = (f"pass {network}, the network that run wrote" if network.is_file() else
+           f"its run has not finished (no {network} yet): continue it with `c4d pretrain-pointmaps "
+           "--resume`, which writes that network file")
+    raise UserError(f"{path} is a training state of `c4d pretrain-pointmaps` (for --resume), not "
+                    f"a pointmap network; {fix}")
+
+
 def _constructor_string(args: Any) -> str:
     """`args.model` of an official checkpoint (Namespace, dict or the string itself)."""
     if isinstance(args, str):
@@ -149,6 +168,8 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> OfficialChec
     if not isinstance(ckpt, dict):
         raise UserError(f"{str(path)!r} is not a checkpoint (a dict with 'model' and 'args'); pass an "
                         "official DUSt3R/MASt3R/MonST3R .pth file")
+    if "args" not in ckpt and TRAINING_STATE_KEYS <= ckpt.keys():
+        _refuse_training_state(path)
     state = ckpt["model"] if "model" in ckpt and isinstance(ckpt["model"], dict) else ckpt
     state = {k.removeprefix("module."): v for k, v in state.items() if isinstance(v, torch.Tensor)}
     if not state:

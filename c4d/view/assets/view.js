@@ -2,7 +2,8 @@
 // Data: the JSON header (#c4d-header) and the base64 payload (#c4d-payload) written by
 // c4d/view/scene_data.py; coordinates are world minus header.centre, OpenCV camera axes.
 // When drawn, <html data-c4d-state> becomes "ready" ("error" on failure) and window.c4dView
-// exposes stats (what is drawn now), setFrame(t), play() and pause().
+// exposes stats (what is drawn now), setFrame(t), play(), pause() and frustums() (where the
+// camera frustums are drawn; read-only).
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
@@ -78,6 +79,18 @@ function cameraGroup(cameras, size, depth, color) {
   line.frustumCulled = false;
   group.add(line);
   return group;
+}
+
+// Where a group's camera frustums are drawn, in world coordinates (`centre` added back): per
+// camera its apex and its image rim's corners (top-left, top-right, bottom-right, bottom-left).
+function drawnFrustums(group, centre) {
+  const offset = new THREE.Vector3(...centre);
+  return group.children.filter(child => child.isLineSegments).map(frustum => {
+    const position = frustum.geometry.attributes.position;
+    const world = (i) => new THREE.Vector3().fromBufferAttribute(position, i)
+      .applyMatrix4(frustum.matrixWorld).add(offset).toArray();
+    return { apex: world(0), corners: [1, 5, 9, 13].map(world) };  // frustumPositions' order
+  });
 }
 
 function main() {
@@ -242,7 +255,7 @@ function main() {
       tracks: header.tracks ? header.tracks.count : 0,
     });
     const time = header.timestamps ? `, t = ${header.timestamps[frame].toFixed(2)}` : '';
-    label.textContent = `frame ${frame + 1} / ${T}${time}`;
+    label.textContent = `frame ${frame} of 0-${T - 1}${time}`;  // counted from 0, as --frame
     status.textContent = `${ns + nd} points (${nd} dynamic), ${stats.cameras} cameras` +
       (truth ? `, ${header.gt_cameras.cam_to_world.length} ground truth` : '') +
       (tracks ? `, ${segments} track segments of ${header.tracks.count} tracks` : '');
@@ -304,7 +317,9 @@ function main() {
     render();
   });
 
-  window.c4dView = { stats, setFrame, play, pause, header, timing };
+  const frustums = () => ({ cameras: drawnFrustums(cameras, header.centre),
+                            truth: truth ? drawnFrustums(truth, header.centre) : [] });
+  window.c4dView = { stats, setFrame, play, pause, frustums, header, timing };
   setFrame(0);
   timing.drawn = performance.now();
   root.dataset.c4dState = 'ready';
