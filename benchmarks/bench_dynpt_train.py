@@ -71,6 +71,7 @@ import cv2
 import numpy as np
 import torch
 
+from timing import git_commit, load_average, this_commit
 from c4d_core.config import load_config
 from c4d_core.system import allocator_environment
 
@@ -268,20 +269,6 @@ def _import_cotracker_training(repo: str):
     return train_on_kubric
 
 
-def cotracker_commit(repo: str) -> str:
-    """The commit of the co-tracker checkout in `repo` (`git rev-parse HEAD`; whether its
-    `cotracker/` or `train_on_kubric.py` differ from it), or why it is not known."""
-    out = subprocess.run(["git", "-C", repo, "rev-parse", "--short", "HEAD"], capture_output=True,
-                         text=True)
-    top = subprocess.run(["git", "-C", repo, "rev-parse", "--show-toplevel"], capture_output=True,
-                         text=True)
-    if out.returncode or Path(top.stdout.strip()).resolve() != Path(repo).resolve():
-        return "not a git work tree (say which commit was exported)"
-    changed = subprocess.run(["git", "-C", repo, "diff", "--quiet", "HEAD", "--", "cotracker",
-                              "train_on_kubric.py"]).returncode
-    return out.stdout.strip() + (" with changes to its code" if changed else "")
-
-
 def cotracker_step_times(repo: str, model: str, window: int, iters: int, steps: int, inputs: str,
                          device: str = "cpu", bf16: bool = False) -> dict:
     """CoTracker3's own train step in this (fresh) process, on the batch saved at `inputs`, as its
@@ -355,20 +342,6 @@ def cotracker_step_times(repo: str, model: str, window: int, iters: int, steps: 
             "peak_gpu_gib": None if peak_gpu is None else peak_gpu / 2**30}
 
 
-def _head() -> str:
-    """This checkout's commit (and whether it has changes), as the runs are reported."""
-    root = Path(__file__).resolve().parent.parent
-    head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
-                          capture_output=True, text=True).stdout.strip() or "unknown"
-    dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True).stdout.strip()
-    return head + (" with uncommitted changes" if dirty else "")
-
-
-def _load() -> str:
-    return " ".join(f"{v:.1f}" for v in os.getloadavg())
-
-
 def _system_command(name: str, inputs: Path, args) -> tuple[list[str], dict]:
     """The child command and environment of one system: `cotracker3[+kept]` (CoTracker3's step by
     `--cotracker-repo` or `--cotracker-step`) or a DynPT model `MODEL[/sSTRIDE][@before][+glibc]`."""
@@ -420,11 +393,11 @@ def compare_steps(systems: list[str], args) -> None:
     runs: dict[str, list[dict]] = {name: [] for name in systems}
     if args.cotracker_repo:
         print(f"co-tracker: {Path(args.cotracker_repo).resolve()} at "
-              f"{cotracker_commit(args.cotracker_repo)}", flush=True)
+              f"{git_commit(args.cotracker_repo, ('cotracker', 'train_on_kubric.py'))}", flush=True)
     for repeat in range(args.repeats):
         for name in systems if repeat % 2 == 0 else systems[::-1]:
             cmd, env = _system_command(name, inputs, args)
-            load_before = _load()
+            load_before = load_average()
             out = subprocess.run(cmd, capture_output=True, text=True, env=env)
             if out.returncode:
                 sys.exit(f"{name} failed (exit {out.returncode}):\n{out.stderr[-3000:]}")
@@ -437,7 +410,7 @@ def compare_steps(systems: list[str], args) -> None:
                   f"(wall {r['step_s']:.2f} s), peak RSS {r['peak_rss_gib']:.2f} GiB "
                   f"(after imports {r['base_rss_gib']:.2f})"
                   + (f", peak GPU {r['peak_gpu_gib']:.2f} GiB" if r.get("peak_gpu_gib") else "")
-                  + f"; load {load_before} -> {_load()}", flush=True)
+                  + f"; load {load_before} -> {load_average()}", flush=True)
     if args.device != "cpu":
         _gpu_table(runs, args)
         return
@@ -456,7 +429,7 @@ def compare_steps(systems: list[str], args) -> None:
               f"{m['peak_rss_gib'] - m['base_rss_gib']:.2f} | "
               f"{_median_range(_paired(runs, name, ref, 'step_cpu_s'))} | "
               f"{_median_range(_paired(runs, name, ref, 'peak_rss_gib'))} |")
-    print(f"\nload average at the end: {_load()}")
+    print(f"\nload average at the end: {load_average()}")
 
 
 def _gpu_table(runs: dict[str, list[dict]], args) -> None:
@@ -533,9 +506,9 @@ def main() -> None:
     if args.cotracker_repo and args.cotracker_step:
         parser.error("--cotracker-repo or --cotracker-step, not both")
 
-    print(f"{time.strftime('%Y-%m-%d %H:%M')}, commit {_head()}, torch {torch.__version__}, "
+    print(f"{time.strftime('%Y-%m-%d %H:%M')}, commit {this_commit()}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads, load average "
-          f"{' '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} cores")
+          f"{load_average()} on {os.cpu_count()} cores")
     if args.clips > 0:
         cv2.setNumThreads(1)  # as in the loader workers, so 0 workers measures one core's work
         shards = args.shards

@@ -45,6 +45,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from timing import git_commit, load_average, this_commit
 from c4d_core.files import atomic_path
 
 H, W = 384, 512
@@ -118,29 +119,6 @@ def run_cotracker_case(repo: str, case: str, repeats: int, threads: int, iters: 
             "peak_mib": _peak_mib() - baseline}
 
 
-def _load() -> str:
-    return " ".join(f"{v:.1f}" for v in os.getloadavg())
-
-
-def _head() -> str:
-    """This checkout's commit (and whether it has changes)."""
-    root = Path(__file__).resolve().parent.parent
-    head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
-                          capture_output=True, text=True).stdout.strip() or "unknown"
-    dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True).stdout.strip()
-    return head + (" with uncommitted changes" if dirty else "")
-
-
-def _cotracker_commit(repo: str) -> str:
-    out = subprocess.run(["git", "-C", repo, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    top = subprocess.run(["git", "-C", repo, "rev-parse", "--show-toplevel"], capture_output=True, text=True)
-    if out.returncode or Path(top.stdout.strip()).resolve() != Path(repo).resolve():
-        return "not a git work tree (say which commit was exported)"
-    changed = subprocess.run(["git", "-C", repo, "diff", "--quiet", "HEAD", "--", "cotracker"]).returncode
-    return out.stdout.strip() + (" with changes to its code" if changed else "")
-
-
 def _median_range(values: list[float]) -> str:
     return f"{statistics.median(values):.2f} ({min(values):.2f}-{max(values):.2f})"
 
@@ -171,10 +149,10 @@ def main() -> None:
         return
     if args.cotracker_repo and args.windowing != "offline":
         parser.error("--cotracker-repo compares offline windowing only")
-    print(f"{time.strftime('%Y-%m-%d %H:%M')}, commit {_head()}, torch {torch.__version__}, "
-          f"{args.threads} threads, load average {_load()} on {os.cpu_count()} cores"
+    print(f"{time.strftime('%Y-%m-%d %H:%M')}, commit {this_commit()}, torch {torch.__version__}, "
+          f"{args.threads} threads, load average {load_average()} on {os.cpu_count()} cores"
           + (f"; co-tracker {Path(args.cotracker_repo).resolve()} at "
-             f"{_cotracker_commit(args.cotracker_repo)}" if args.cotracker_repo else ""), flush=True)
+             f"{git_commit(args.cotracker_repo, ('cotracker',))}" if args.cotracker_repo else ""), flush=True)
     results, table = [], []
     common = ["--windowing", args.windowing, "--repeats", str(args.repeats), "--threads",
               str(args.threads), "--iters", str(args.iters)]
@@ -189,19 +167,19 @@ def main() -> None:
         runs: dict[str, list[dict]] = {name: [] for name in systems}
         for pair in range(args.pairs if args.cotracker_repo else 1):
             for name in list(systems) if pair % 2 == 0 else list(systems)[::-1]:
-                load_before = _load()
+                load_before = load_average()
                 out = subprocess.run([sys.executable, __file__, "--only", case, *common, *systems[name]],
                                      capture_output=True, text=True)
                 if out.returncode:
                     sys.exit(f"{name} {case} failed (exit {out.returncode}):\n{out.stderr[-3000:]}")
                 r = json.loads(out.stdout.strip().splitlines()[-1])
-                r["pair"], r["load"] = pair, [load_before, _load()]
+                r["pair"], r["load"] = pair, [load_before, load_average()]
                 runs[name].append(r)
                 results.append(r)
                 print(f"{r['model']} T={r['T']} N={r['N']} {H}x{W}: CPU {r['cpu_s']:.1f} s (runs "
                       f"{[round(v, 1) for v in r['cpu_runs']]}), wall {r['wall_s']:.1f} s, peak "
                       f"{r['peak_mib']:.0f} MiB, {r['params'] / 1e6:.2f}M params, {r['threads']} "
-                      f"threads; load {load_before} -> {_load()}", flush=True)
+                      f"threads; load {load_before} -> {load_average()}", flush=True)
         if args.cotracker_repo:
             d, c = runs["dynpt"], runs["cotracker3"]
             time_ratio = [a["cpu_s"] / b["cpu_s"] for a, b in zip(d, c)]
@@ -214,7 +192,7 @@ def main() -> None:
         print(f"\n| frames x points | DynPT CPU s (median of {args.pairs}) | CoTracker3 CPU s | time "
               "ratio, paired (median; range) | DynPT peak MiB | CoTracker3 peak MiB | memory ratio, "
               "paired (median; range) |\n|---|---:|---:|---:|---:|---:|---:|\n" + "\n".join(table))
-        print(f"\nload average at the end: {_load()}")
+        print(f"\nload average at the end: {load_average()}")
     if args.json:
         with atomic_path(Path(args.json)) as tmp:
             Path(tmp).write_text(json.dumps(results, indent=1))
