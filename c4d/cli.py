@@ -30,10 +30,16 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "track": ("dynpt.cli_track", "track points in a video and write tracks plus an overlay video"),
     "run": ("c4d_pipeline.cli_run", "reconstruct a monocular video with C4D (depth, poses, masks, 3D tracks)"),
     "eval-recon": ("c4d_pipeline.cli_eval_recon", "score a reconstruction against ground truth"),
-    "export": ("datagen.export.cli", "write a dataset as Kubric, CoTracker or TAP-Vid files their own code reads"),
+    "export": ("datagen.export.cli", "write a dataset as Kubric, CoTracker or TAP-Vid files their own code "
+                                     "reads, or a reconstruction as a COLMAP text model (export colmap)"),
     "demo": ("c4d.demo", "the whole chain on a small generated dataset, in minutes on a CPU"),
     "config": ("c4d.cli_config", "print a preset's fully resolved config: config show GROUP/PRESET [key=value ...]"),
 }
+
+# (subcommand, its first positional) -> the module of that form of the subcommand, where another
+# package owns it: `c4d export colmap RECON OUT` exports a reconstruction (c4d_pipeline), which the
+# dataset exports of `datagen.export` may not import (docs/ARCHITECTURE.md).
+FORMS: dict[tuple[str, str], str] = {("export", "colmap"): "c4d_pipeline.cli_export_colmap"}
 
 # The subcommands that write outputs (c4d_core.ownership), and what --overwrite adds for each.
 WRITERS: dict[str, str] = {name: "" for name in SUBCOMMANDS if name != "config"}
@@ -42,8 +48,9 @@ WRITERS["run"] = "; also needed to replace a reconstruction already in --out"
 log = logging.getLogger("c4d")
 
 
-def build_parser(chosen: str | None) -> argparse.ArgumentParser:
-    """The top-level parser; only the `chosen` subcommand gets its full argument list."""
+def build_parser(chosen: str | None, module: str | None = None) -> argparse.ArgumentParser:
+    """The top-level parser; only the `chosen` subcommand gets its full argument list, from
+    `module` (default: the subcommand's module in `SUBCOMMANDS`)."""
     parser = argparse.ArgumentParser(
         prog="c4d",
         description="Dynamic-aware point tracking and C4D reconstruction. "
@@ -73,12 +80,21 @@ def build_parser(chosen: str | None) -> argparse.ArgumentParser:
                 "(the old one is kept until the new output is complete; a folder holding files "
                 "c4d did not write is never replaced)" + WRITERS[name])
         if name == chosen:
-            importlib.import_module(module_name).add_arguments(sub)
+            importlib.import_module(module or module_name).add_arguments(sub)
     return parser
 
 
 def _chosen_subcommand(argv: list[str]) -> str | None:
     return next((a for a in argv if a in SUBCOMMANDS), None)
+
+
+def _command_module(argv: list[str], chosen: str) -> str:
+    """The module that runs `chosen` as `argv` uses it: a `FORMS` entry when the first positional
+    after the subcommand (skipping options and the value of `--threads`) names one."""
+    rest = argv[argv.index(chosen) + 1:]
+    first = next((a for a, before in zip(rest, ["", *rest])
+                  if not a.startswith("-") and before != "--threads"), None)
+    return FORMS.get((chosen, first), SUBCOMMANDS[chosen][0])
 
 
 def parse_arguments(argv: list[str]) -> argparse.Namespace:
@@ -87,8 +103,11 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
     argparse only gives a trailing `nargs="*"` positional the tokens right after the other
     positionals, so stray `key=value` tokens are collected here and appended to `args.overrides`.
     """
-    parser = build_parser(_chosen_subcommand(argv))
+    chosen = _chosen_subcommand(argv)
+    module = _command_module(argv, chosen) if chosen else None
+    parser = build_parser(chosen, module)
     args, extra = parser.parse_known_args(argv)
+    args.command_module = module
     if extra:
         stray = [a for a in extra if a.startswith("-") or "=" not in a]
         if stray or not hasattr(args, "overrides"):
@@ -111,7 +130,7 @@ def run_subcommand(argv: list[str]) -> int:
     if getattr(args, "threads", None) is not None:
         set_thread_override(args.threads)
     configure_threads()
-    return int(importlib.import_module(SUBCOMMANDS[args.command][0]).run(args) or 0)
+    return int(importlib.import_module(args.command_module).run(args) or 0)
 
 
 def main(argv: list[str] | None = None) -> int:

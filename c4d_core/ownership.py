@@ -58,6 +58,7 @@ KINDS: dict[str, str] = {
     "export-kubric": "a kubric export made by `c4d export kubric`",
     "export-cotracker": "a cotracker export made by `c4d export cotracker`",
     "export-tapvid": "a tapvid export made by `c4d export tapvid`",
+    "export-colmap": "a COLMAP text model made by `c4d export colmap`",
     "demo": "a demo made by `c4d demo`",
 }
 

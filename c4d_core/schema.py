@@ -319,6 +319,7 @@ RULES: dict[str, dict[str, Rule]] = {
     "c4d": {
         "seed": SEED, "device": device(), "threads": POSITIVE, "flow": text(),
         "video.stride": COUNT, "video.max_frames": integer(2, zero=True),  # 0: all; 1 frame: no pair
+        "intrinsics.known": text(), "intrinsics.mode": text("fixed", "init"),
         "pointmaps.checkpoint": text(), "pointmaps.size": integer(0, MAX_SIDE),  # 0: the checkpoint's
         "pointmaps.batch": POSITIVE,
         "pointmaps.precision": text("fp32", "bf16"),

@@ -4,8 +4,9 @@
 2. Seed the world with the strongest pair in its first view's camera frame, then walk the tree:
    each new frame's points come from a pair whose other frame is already placed, registered onto
    it with a confidence-weighted similarity (Umeyama) fit.
-3. Per frame: the focal from its own-frame pointmap (weighted least squares + IRLS towards L1),
-   the pose and depth scale from a similarity fit of that pointmap onto its world points.
+3. Per frame: the focal from its own-frame pointmap (weighted least squares + IRLS towards L1;
+   with known intrinsics, the given fx, fy, cx, cy instead), the pose and depth scale from a
+   similarity fit of that pointmap onto its world points.
 4. Per edge: the similarity taking the pair's pointmaps onto the initial world points.
 5. The world is rescaled so that the median depth is 1 (so fixed learning rates mean the same
    thing on every scene).
@@ -58,10 +59,15 @@ class Initialisation:
 
     depth: torch.Tensor  # (T,H,W)
     cam_to_world: torch.Tensor  # (T,4,4)
-    focal: torch.Tensor  # (T,)
+    focal: torch.Tensor  # (T,) fx, pixels
     edge_scale: torch.Tensor  # (E,)
     edge_rotation: torch.Tensor  # (E,3,3)
     edge_translation: torch.Tensor  # (E,3)
+    principal: torch.Tensor  # (T,2) cx, cy, pixels
+    aspect: torch.Tensor  # (T,) fy / fx
+
+    def focal_xy(self) -> torch.Tensor:
+        return torch.stack([self.focal, self.focal * self.aspect], -1)  # (T,2) fx, fy
 
 
 def spanning_tree_order(edges: np.ndarray, scores: np.ndarray, num_frames: int):
@@ -88,9 +94,10 @@ def spanning_tree_order(edges: np.ndarray, scores: np.ndarray, num_frames: int):
 
 
 def initialise(pw: PairwisePointmaps, num_frames: int, shared_focal: bool = False,
-               chunk: int = 16) -> Initialisation:
+               chunk: int = 16, intrinsics: torch.Tensor | None = None) -> Initialisation:
     """Spanning-tree initialisation (module docstring). Needs every frame to be the first view of
-    some edge (true for symmetric graphs)."""
+    some edge (true for symmetric graphs). `intrinsics`: known (T,4) fx, fy, cx, cy in the
+    pointmaps' pixels (None: the focal estimated, the principal point at the image centre)."""
     edges = pw.edges
     firsts = set(edges[:, 0].tolist())
     if len(firsts) != num_frames:
@@ -129,10 +136,15 @@ def initialise(pw: PairwisePointmaps, num_frames: int, shared_focal: bool = Fals
         cand = np.flatnonzero(edges[:, 0] == n)
         own[n] = int(cand[np.argmax(scores[cand])])
     cam_pts, cam_w = pts_i[own], w_i[own]  # (T,H,W,3), (T,H,W)
-    principal = torch.tensor([(w - 1) / 2, (h - 1) / 2])
-    focal = estimate_focal(cam_pts.double(), cam_w.double(), principal.double()).float()  # (T,)
-    if shared_focal:
-        focal = focal.median().expand(num_frames).clone()
+    if intrinsics is None:
+        centre = torch.tensor([(w - 1) / 2, (h - 1) / 2])
+        focal = estimate_focal(cam_pts.double(), cam_w.double(), centre.double()).float()  # (T,)
+        if shared_focal:
+            focal = focal.median().expand(num_frames).clone()
+        principal, aspect = centre.expand(num_frames, 2).clone(), torch.ones(num_frames)
+    else:
+        known = intrinsics.float()
+        focal, aspect, principal = known[:, 0], known[:, 1] / known[:, 0], known[:, 2:]
     s, r, t = weighted_procrustes(cam_pts.reshape(num_frames, -1, 3),
                                   world_pts.reshape(num_frames, -1, 3), cam_w.reshape(num_frames, -1))
     depth = (s[:, None, None] * cam_pts[..., 2]).clamp_min(1e-6)  # (T,H,W)
@@ -146,7 +158,7 @@ def initialise(pw: PairwisePointmaps, num_frames: int, shared_focal: bool = Fals
     depth, cam_to_world[:, :3, 3] = depth / norm, cam_to_world[:, :3, 3] / norm
 
     # 4. per-edge similarities onto the world points the initial parameters define
-    rays = pixel_rays(h, w, focal, principal)  # (T,H,W,3)
+    rays = pixel_rays(h, w, torch.stack([focal, focal * aspect], -1), principal)  # (T,H,W,3)
     x_world = torch.einsum("tij,thwj->thwi", cam_to_world[:, :3, :3], rays * depth[..., None])
     x_world = x_world + cam_to_world[:, None, None, :3, 3]  # (T,H,W,3)
     fits = []
@@ -160,4 +172,4 @@ def initialise(pw: PairwisePointmaps, num_frames: int, shared_focal: bool = Fals
     es, er, et = (torch.cat(parts) for parts in zip(*fits))
     log.debug("initialised %d frames, median focal %.1f px", num_frames, float(focal.median()))
     return Initialisation(depth.float(), cam_to_world.float(), focal.float(), es.float(),
-                          er.float(), et.float())
+                          er.float(), et.float(), principal.float(), aspect.float())

@@ -36,6 +36,7 @@ log = logging.getLogger("c4d.run")
 RUN_FLAGS = {"pointmaps": "pointmaps.checkpoint", "tracker": "tracker.checkpoint", "flow": "flow",
              "size": "pointmaps.size", "stride": "video.stride", "max_frames": "video.max_frames",
              "grid_size": "tracker.grid_size", "pointmap_batch": "pointmaps.batch",
+             "intrinsics": "intrinsics.known", "intrinsics_mode": "intrinsics.mode",
              "threads": "threads"}  # --threads: c4d.cli's flag of every subcommand
 
 
@@ -56,6 +57,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stride", type=int, help="use every STRIDE-th frame (key video.stride) [1]")
     parser.add_argument("--max-frames", type=int,
                         help="use at most this many frames (key video.max_frames; default: all)")
+    parser.add_argument("--intrinsics", metavar="FX,FY,CX,CY|FILE",
+                        help="known camera intrinsics in the source video's pixels, or a .txt/.npy file "
+                        "with one row fx fy cx cy per source frame (or one row); key intrinsics.known "
+                        "(default: estimated)")
+    parser.add_argument("--intrinsics-mode", choices=["fixed", "init"],
+                        help="fixed: known intrinsics are not optimised; init: the focal starts there "
+                        "and is optimised (key intrinsics.mode) [fixed]")
     parser.add_argument("--grid-size", type=int, help="tracker query grid cell in pixels (a max-gradient "
                         "+ a random point per cell; key tracker.grid_size) [20]")
     parser.add_argument("--pointmap-batch", type=int, help="image pairs per network pass (0 = from "
@@ -107,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     from c4d_pipeline.pointmap_sources import build_pointmaps
     from c4d_pipeline.pipeline import reconstruct
     from c4d_pipeline.scene_graph import graph_from_config
-    from c4d_pipeline.video_input import load_video_input
+    from c4d_pipeline.video_input import load_video_input, network_intrinsics, read_intrinsics
     from dynpt.device import device_for
 
     # 1. Everything the user named, checked before any heavy work.
@@ -120,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("no pointmap checkpoint: give --pointmaps CKPT (or pointmaps.checkpoint=CKPT)")
     _check_file(cfg.pointmaps.checkpoint, "pointmap checkpoint", "--pointmaps")
     _check_file(cfg.tracker.checkpoint, "tracker checkpoint", "--tracker")
+    known = read_intrinsics(cfg.intrinsics.known) if cfg.intrinsics.known else None  # (N,4) source px
     out = Path(args.out)
     _check_out(out, args.overwrite)
     seconds: dict[str, float] = {}
@@ -153,6 +162,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.video} gives {T} frame(s) at video.stride={cfg.video.stride} (--stride); "
                         "a reconstruction needs at least 2: lower the stride or use a longer video")
     graph_from_config(T, cfg.graph)  # a graph that does not connect the frames: refused here
+    intrinsics = None if known is None else network_intrinsics(
+        known, video, read_whole=not cfg.video.max_frames or T < cfg.video.max_frames)  # (T,4)
 
     # 3 and 4 write into OUT.partial, which becomes OUT when complete (an old OUT stays till then).
     with staged_folder(out) as stage:
@@ -179,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
             "seconds_before_reconstruction": seconds,
         }
         rec = reconstruct(frames, source, flow, tracks, cfg, stage, inputs={**inputs, "fps": video.fps},
-                          timestamps=video.timestamps)
+                          timestamps=video.timestamps, intrinsics=intrinsics)
     stage_seconds = rec.report["seconds"]
     log.info("wrote %s (%s)", out, ", ".join(f"{k} {v:.1f}s" for k, v in {**seconds, **stage_seconds}.items()))
     return 0

@@ -8,7 +8,8 @@ poses, focals and edge similarities converge there, and the full-size iterations
 Pixel grids: coarse pixel (u, v) pools the k x k block of full-size pixels [k u, k u + k) x
 [k v, k v + k), whose centre is full-size pixel (k u + (k-1)/2, k v + (k-1)/2); rows and columns
 past the last whole block are left out of the coarse level (and filled from the nearest block when
-lifting). Focal lengths scale by k; the principal point stays at the image centre.
+lifting). Focal lengths scale by k; the principal point is the image centre on each level, or
+known intrinsics' principal point mapped onto the coarse grid (`pooled_intrinsics`).
 
 Pooling (`pooled_inputs`): pointmaps and confidences by their block mean; flow by its block mean in
 coarse pixels (divided by k; a block with any non-finite flow has none); a coarse pixel is static
@@ -31,6 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from c4d_core.errors import UserError
+from c4d_core.geometry import rescale_pixels
 from c4d_core.schema import MIN_SIDE
 from c4d_pipeline.alignment import Initialisation
 from c4d_pipeline.pointmaps import PairwisePointmaps
@@ -95,14 +97,24 @@ def depth_detail(pw: PairwisePointmaps, num_frames: int, factor: int) -> torch.T
     return detail
 
 
-def lift(coarse: SceneParams, pw: PairwisePointmaps, num_frames: int, factor: int) -> Initialisation:
-    """The full-size initial values from the coarse level's parameters (module docstring)."""
+def pooled_intrinsics(intrinsics: torch.Tensor, factor: int) -> torch.Tensor:
+    """Known intrinsics (T,4) fx, fy, cx, cy at full size -> the coarse level's (T,4)."""
+    return torch.cat([intrinsics[:, :2] / factor, rescale_pixels(intrinsics[:, 2:], factor, inverse=True)], 1)
+
+
+def lift(coarse: SceneParams, pw: PairwisePointmaps, num_frames: int, factor: int,
+         intrinsics: torch.Tensor | None = None) -> Initialisation:
+    """The full-size initial values from the coarse level's parameters (module docstring);
+    `intrinsics`: the known full-size (T,4) fx, fy, cx, cy the coarse level was given, if any."""
     with torch.no_grad():
         log_depth = upsample(coarse.log_depth.detach().cpu(), factor, pw.image_size)  # (T,H,W)
         depth = (log_depth + depth_detail(pw, num_frames, factor)).exp()
         scale, rotation, translation = (x.cpu() for x in coarse.edge_similarities())
+        h, w = pw.image_size
+        principal = (torch.tensor([(w - 1) / 2, (h - 1) / 2]).expand(num_frames, 2) if intrinsics is None
+                     else intrinsics[:, 2:].cpu())
         return Initialisation(depth, coarse.cam_to_world().cpu(), coarse.focals().cpu() * factor,
-                              scale, rotation, translation)
+                              scale, rotation, translation, principal.float(), coarse.aspect.cpu())
 
 
 def lift_adam_state(coarse_adam: torch.optim.Adam, coarse: SceneParams, adam: torch.optim.Adam,

@@ -117,14 +117,14 @@ def ego_projection(rotations: torch.Tensor, translations: torch.Tensor, intrinsi
     """Per edge i->j the map of a pixel of view i and its depth to homogeneous pixels of view j:
     (H (e,3,3), c (e,3)) with [u' z, v' z, z] = d H [u, v, 1] + c, H = K_j R_j^T R_i K_i^-1 (the
     rotation homography), c = K_j R_j^T (T_i - T_j). Camera-to-world rotations (T,3,3) and
-    translations (T,3), intrinsics (T,3,3) (upper triangular), ei, ej (e,)."""
+    translations (T,3), intrinsics (T,3,3) (fx, fy, cx, cy; no skew), ei, ej (e,)."""
     to_j = rotations[ej].transpose(1, 2)  # (e,3,3) world -> camera j
     k_to_j = intrinsics[ej] @ to_j
     k = intrinsics[ei]
-    focal = k[:, 0, 0]
-    k_inv = torch.zeros_like(k)  # K_i^-1 = [[1/f, 0, -cx/f], [0, 1/f, -cy/f], [0, 0, 1]]
-    k_inv[:, 0, 0], k_inv[:, 1, 1], k_inv[:, 2, 2] = 1.0 / focal, 1.0 / focal, 1.0
-    k_inv[:, 0, 2], k_inv[:, 1, 2] = -k[:, 0, 2] / focal, -k[:, 1, 2] / focal
+    fx, fy = k[:, 0, 0], k[:, 1, 1]
+    k_inv = torch.zeros_like(k)  # K_i^-1 = [[1/fx, 0, -cx/fx], [0, 1/fy, -cy/fy], [0, 0, 1]]
+    k_inv[:, 0, 0], k_inv[:, 1, 1], k_inv[:, 2, 2] = 1.0 / fx, 1.0 / fy, 1.0
+    k_inv[:, 0, 2], k_inv[:, 1, 2] = -k[:, 0, 2] / fx, -k[:, 1, 2] / fy
     return k_to_j @ rotations[ei] @ k_inv, (k_to_j @ (translations[ei] - translations[ej])[..., None])[..., 0]
 
 

@@ -1,6 +1,7 @@
 """The two-stage correspondence-aided optimisation (paper sec. 3.4, supplement "Optimization").
 
-Stage 1: GA + w_cma CMA + w_cts CTS over depth, poses, intrinsics and the per-edge similarities.
+Stage 1: GA + w_cma CMA + w_cts CTS over depth, poses, intrinsics and the per-edge similarities
+(the focal only; with known intrinsics in `intrinsics.mode` fixed, not that either).
 Stage 2: poses, intrinsics and edge similarities fixed; w_pts PTS over depth only.
 Coarse-to-fine (`optim.coarse_factor` > 1, `optim.coarse_iters` > 0): the first coarse_iters of
 stage 1's iterations run on pooled observations, the rest at full size (`coarse_to_fine`).
@@ -126,6 +127,13 @@ def _check_inputs(pw: PairwisePointmaps, num_frames, flows, static_masks, tracks
             raise UserError("track visibility must be given with shape (T,N) matching the tracks")
 
 
+def check_intrinsics(intrinsics: np.ndarray | None, num_frames: int) -> None:
+    """`UserError` unless known intrinsics are None or (T,4) rows fx, fy, cx, cy."""
+    if intrinsics is not None and np.shape(intrinsics) != (num_frames, 4):
+        raise UserError(f"known intrinsics have shape {np.shape(intrinsics)}, expected (T={num_frames},4) "
+                        "rows fx, fy, cx, cy")
+
+
 def frame_confidence(pw: PairwisePointmaps, num_frames: int) -> np.ndarray:
     """(T,H,W) per-pixel maximum raw confidence over every pair the frame belongs to."""
     conf = np.ones((num_frames,) + pw.image_size, np.float32)
@@ -142,8 +150,7 @@ def rescale_world(init: Initialisation, image_size: tuple[int, int], world_scale
     if world_scale <= 0:
         return init
     h, w = image_size
-    principal = torch.tensor([(w - 1) / 2, (h - 1) / 2], dtype=init.focal.dtype)
-    ray_len = pixel_rays(h, w, init.focal, principal).norm(dim=-1)  # (T,H,W) distance per unit depth
+    ray_len = pixel_rays(h, w, init.focal_xy(), init.principal).norm(dim=-1)  # (T,H,W) distance per unit depth
     factor = world_scale / float((ray_len * init.depth).mean())
     pose = init.cam_to_world.clone()
     pose[:, :3, 3] *= factor
@@ -157,7 +164,7 @@ def fixed_camera_pts(params: SceneParams, targets: torch.Tensor, has_target: tor
     targets (T,H,W,3) and has_target (T,) of `objectives.pts_targets`."""
     with torch.no_grad():
         frames = has_target.nonzero()[:, 0]  # (t,)
-        rays = pixel_rays(*params.image_size, params.focals(), params.principal)[frames]  # (t,H,W,3)
+        rays = pixel_rays(*params.image_size, params.focals_xy(), params.principal)[frames]  # (t,H,W,3)
         rays = torch.bmm(params.rotations()[frames], rays.flatten(1, 2).transpose(1, 2))  # (t,3,P)
         offset = params.trans[frames, :, None] - targets[frames].flatten(1, 2).transpose(1, 2)  # (t,3,P)
     return frames, rays, offset.contiguous()
@@ -291,18 +298,24 @@ class Stage1:
     """Stage 1 of `optimise` as a callable: built from the observations and the config (same
     arguments), `step()` makes one forward/backward of GA + CMA + CTS (gradients left in
     `params`) and returns its losses. Used by `optimise` and by timing scripts. `init`: initial
-    values in the world's units (default: the spanning-tree initialisation, `rescale_world`ed)."""
+    values in the world's units (default: the spanning-tree initialisation, `rescale_world`ed).
+    `intrinsics`: known (T,4) fx, fy, cx, cy in the pointmaps' pixels (None: estimated), held fixed
+    when `intrinsics.mode` is fixed."""
 
     def __init__(self, pw: PairwisePointmaps, num_frames: int, cfg, flows=None, static_masks=None,
-                 device: str = "cpu", init: Initialisation | None = None):
+                 device: str = "cpu", init: Initialisation | None = None,
+                 intrinsics: torch.Tensor | None = None):
         h, w = pw.image_size
         opt_cfg = cfg.optim
         if init is None:
-            init = rescale_world(initialise(pw, num_frames, shared_focal=opt_cfg.shared_focal),
-                                 (h, w), opt_cfg.world_scale)
+            init = rescale_world(initialise(pw, num_frames, shared_focal=opt_cfg.shared_focal,
+                                            intrinsics=intrinsics), (h, w), opt_cfg.world_scale)
         self.params = SceneParams(init.depth, init.cam_to_world, init.focal, init.edge_scale,
                                   init.edge_rotation, init.edge_translation,
-                                  shared_focal=opt_cfg.shared_focal).to(device)
+                                  shared_focal=opt_cfg.shared_focal, principal=init.principal,
+                                  aspect=init.aspect,
+                                  fixed_focal=intrinsics is not None and cfg.intrinsics.mode == "fixed",
+                                  ).to(device)
         wanted = {name for term in active_objectives(1, cfg.weights, {"pointmaps", "flow", "tracks"})
                   for name in term.inputs}  # flow is held on the device only if a term reads it
         self.data = _Inputs(pw, flows if "flow" in wanted else None, static_masks, device)
@@ -352,15 +365,21 @@ def optimise(
     visible: np.ndarray | None = None,
     device: str = "cpu",
     progress: bool = False,
+    intrinsics: np.ndarray | None = None,
 ) -> OptimisationResult:
     """Reconstruct depth, poses and intrinsics from pairwise pointmaps and correspondences.
 
     pw: pointmaps of the scene graph's E edges at (H,W); flows: float32 (E,H,W,2) optical flow
     i->j per edge (None: no CMA); static_masks: bool (T,H,W) True = static (None: all static);
-    tracks: float (T,N,2) pixels and visible: bool (T,N) for PTS (None: no stage 2).
-    cfg: a DictConfig/namespace with `optim`, `weights`, `cma`, `pts` sections (configs/c4d).
+    tracks: float (T,N,2) pixels and visible: bool (T,N) for PTS (None: no stage 2);
+    intrinsics: known (T,4) fx, fy, cx, cy in pixels of (H,W) (None: the focal estimated, the
+    principal point at the image centre), fixed or a starting point per `intrinsics.mode`.
+    cfg: a DictConfig/namespace with `optim`, `weights`, `cma`, `pts`, `intrinsics` sections
+    (configs/c4d).
     """
     _check_inputs(pw, num_frames, flows, static_masks, tracks, visible)
+    check_intrinsics(intrinsics, num_frames)
+    known = None if intrinsics is None else torch.as_tensor(np.asarray(intrinsics), dtype=torch.float32)
     torch.manual_seed(int(cfg.seed))
     opt_cfg, weights = cfg.optim, cfg.weights
     history: dict = {"seconds": {}, "cpu_seconds": {}, "losses": {}}
@@ -373,7 +392,8 @@ def optimise(
         coarse_to_fine.check_factor(pw.image_size, factor)
         start, cpu_start = time.perf_counter(), time.process_time()
         pooled, pooled_flows, pooled_static = coarse_to_fine.pooled_inputs(pw, factor, flows, static_masks)
-        coarse = Stage1(pooled, num_frames, cfg, pooled_flows, pooled_static, device)
+        coarse = Stage1(pooled, num_frames, cfg, pooled_flows, pooled_static, device,
+                        intrinsics=None if known is None else coarse_to_fine.pooled_intrinsics(known, factor))
         del pooled, pooled_flows, pooled_static
         history["seconds"]["init_coarse"] = time.perf_counter() - start
         history["cpu_seconds"]["init_coarse"] = time.process_time() - cpu_start
@@ -383,10 +403,10 @@ def optimise(
             coarse_adam, range(coarse_iters), total, opt_cfg, coarse.step, f"stage 1 at 1/{factor} size",
             progress)
         history["seconds"]["stage1_coarse"] = time.perf_counter() - start
-        init = coarse_to_fine.lift(coarse.params, pw, num_frames, factor)
+        init = coarse_to_fine.lift(coarse.params, pw, num_frames, factor, intrinsics=known)
 
     start, cpu_start = time.perf_counter(), time.process_time()
-    stage1 = Stage1(pw, num_frames, cfg, flows, static_masks, device, init=init)
+    stage1 = Stage1(pw, num_frames, cfg, flows, static_masks, device, init=init, intrinsics=known)
     params = stage1.params
     history["seconds"]["init"] = time.perf_counter() - start
     history["cpu_seconds"]["init"] = time.process_time() - cpu_start

@@ -21,7 +21,7 @@ from c4d_core.system import configure_threads
 from c4d_pipeline import motion_mask as mm
 from c4d_pipeline.alignment import initialise
 from c4d_pipeline.objectives import sample_points
-from c4d_pipeline.optimize import optimise
+from c4d_pipeline.optimize import check_intrinsics, optimise
 from c4d_pipeline.outputs import Reconstruction, write_reconstruction
 from c4d_pipeline.pointmaps import PairwisePointmaps, PointmapSource, sanitize
 from c4d_pipeline.scene_graph import graph_from_config
@@ -65,22 +65,25 @@ def _tracker_arrays(tracker_result, num_frames: int, image_size) -> dict[str, np
     return arrays
 
 
-def estimate_motion_masks(frames, edges, flows, tracker_result, pw, cfg) -> tuple[np.ndarray, str]:
+def estimate_motion_masks(frames, edges, flows, tracker_result, pw, cfg,
+                          intrinsics: np.ndarray | None = None) -> tuple[np.ndarray, str]:
     """Motion masks bool (T,H,W) (True = dynamic) and the method used.
 
     With a tracker result: C4D's DynPT + flow masks. Without: the flow-only baseline, with the
-    ego-flow from the spanning-tree initialisation's depth, intrinsics and poses.
+    ego-flow from the spanning-tree initialisation's depth, intrinsics (the known (T,4) fx, fy,
+    cx, cy if given) and poses.
     """
     pairs = [tuple(map(int, e)) for e in edges]
     if tracker_result is not None:
         mcfg = mm.MotionMaskConfig(**to_dict(cfg.motion_mask.c4d))
         return mm.correspondence_motion_masks(tracker_result, flows, pairs, mcfg).masks, "dynpt+flow"
     log.warning("no tracker result: motion masks from the flow-only baseline, stage 2 (PTS) skipped")
-    init = initialise(pw, frames.shape[0], shared_focal=cfg.optim.shared_focal)
+    init = initialise(pw, frames.shape[0], shared_focal=cfg.optim.shared_focal,
+                      intrinsics=None if intrinsics is None else torch.from_numpy(intrinsics))
     depth, pose = init.depth.numpy(), init.cam_to_world.numpy().astype(np.float64)
     k = np.zeros((frames.shape[0], 3, 3))
-    k[:, 0, 0] = k[:, 1, 1] = init.focal.numpy()
-    k[:, 0, 2], k[:, 1, 2], k[:, 2, 2] = (frames.shape[2] - 1) / 2, (frames.shape[1] - 1) / 2, 1
+    (k[:, 0, 0], k[:, 1, 1]), (k[:, 0, 2], k[:, 1, 2]) = init.focal_xy().numpy().T, init.principal.numpy().T
+    k[:, 2, 2] = 1
     ego = np.stack([mm.ego_flow(depth[i], k[i], k[j], pose[i], pose[j]) for i, j in pairs])
     masks = mm.flow_only_motion_masks(flows, ego, pairs, frames.shape[0], cfg.motion_mask.flow_only_threshold)
     return masks.masks, "flow-only"
@@ -104,7 +107,8 @@ def _pointmap_failures(pw: PairwisePointmaps):
 
 def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estimator,
                 tracker_result, cfg, out_dir: str | Path | None = None,
-                inputs: dict | None = None, timestamps: np.ndarray | None = None) -> Reconstruction:
+                inputs: dict | None = None, timestamps: np.ndarray | None = None,
+                intrinsics: np.ndarray | None = None) -> Reconstruction:
     """Reconstruct a video with C4D and (if `out_dir`) write the output table there.
 
     frames: uint8 (T,H,W,3) at the resolution of the reconstruction (the pointmap source must
@@ -113,7 +117,10 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
     dynpt's TrackResult (tracks (T,N,2), visible, confidence, moving (T,N), queries (N,3)) or None
     (flow-only masks, no PTS); cfg: a c4d config (configs/c4d/default.yaml); inputs: free-form
     description of the inputs for report.json; timestamps: float64 (T,) source time of each frame
-    in seconds, for poses_tum.txt (None: the frame index).
+    in seconds, for poses_tum.txt (None: the frame index); intrinsics: known float (T,4) fx, fy,
+    cx, cy in pixels of `frames` (`video_input.network_intrinsics` converts `intrinsics.known`
+    from the source video's pixels), fixed or a starting point per `intrinsics.mode` (None: the
+    focal estimated, the principal point at the image centre).
     Bad input: a source returning NaN/inf points gets those pixels ignored (warning); mismatched
     frame counts or sizes between frames, pointmaps, flow and tracks raise `UserError`; a video
     too short for the scene graph raises `UserError`; too few static points for a pair's
@@ -121,6 +128,7 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
     """
     check_frames(frames)
     num_frames, h, w = frames.shape[:3]
+    check_intrinsics(intrinsics, num_frames)
     if cfg.threads > 0:  # a library caller's config (`c4d run` set them before loading the networks)
         configure_threads(threads=cfg.threads)
     seconds: dict[str, float] = {}
@@ -148,7 +156,8 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
     start = time.perf_counter()
     tracks = _tracker_arrays(tracker_result, num_frames, (h, w))
     with _pointmap_failures(pw):
-        masks, mask_method = estimate_motion_masks(frames, edges, np.nan_to_num(flows), tracker_result, pw, cfg)
+        masks, mask_method = estimate_motion_masks(frames, edges, np.nan_to_num(flows), tracker_result, pw, cfg,
+                                                   intrinsics)
     seconds["motion_masks"] = time.perf_counter() - start
 
     with _pointmap_failures(pw):
@@ -156,6 +165,7 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
             pw, num_frames, cfg, flows=flows, static_masks=~masks,
             tracks=None if tracks is None else tracks["tracks"],
             visible=None if tracks is None else tracks["visible"], device=cfg.device,
+            intrinsics=intrinsics,
         )
     seconds.update({f"optimise_{k}": v for k, v in result.history["seconds"].items()})
 

@@ -3,9 +3,12 @@
 Per frame t (T frames, H x W pixels):
 - depth D^t, parametrised as log-depth (T,H,W);
 - camera-to-world pose [R^t | T^t]: unnormalised quaternion (w,x,y,z) (T,4) and translation (T,3);
-- focal length f^t (square pixels), parametrised as `focal_break` * log f (DUSt3R's trick, so one
-  Adam step moves f by ~lr/focal_break relative); the principal point is fixed at the image centre
-  ((W-1)/2, (H-1)/2), or shared as one focal when `shared_focal`.
+- focal length f^t = fx^t, parametrised as `focal_break` * log f (DUSt3R's trick, so one
+  Adam step moves f by ~lr/focal_break relative), or shared as one focal when `shared_focal`;
+  fy^t = aspect^t f^t with the aspect ratio fy/fx a constant (1: square pixels) and the principal
+  point (cx^t, cy^t) a constant (default the image centre ((W-1)/2, (H-1)/2); known intrinsics
+  give both). With `fixed_focal` the focal is a constant too (known intrinsics, `intrinsics.mode`
+  fixed): a buffer, so no optimiser sees it.
 Per directed edge e: a similarity taking the pair's pointmaps into the world,
 P_e(x) = sigma_e R_e x + t_e; the geometric mean of sigma_e is held at its initial value, which
 removes the global-scale degeneracy of global alignment (all points collapsing to zero).
@@ -37,22 +40,26 @@ def rotation_to_quat(rot: torch.Tensor) -> torch.Tensor:
 
 
 def pixel_rays(height: int, width: int, focal: torch.Tensor, principal: torch.Tensor) -> torch.Tensor:
-    """K^-1 [u, v, 1] for every pixel centre: focal (T,), principal (2,) -> (T,H,W,3)."""
+    """K^-1 [u, v, 1] for every pixel centre: focal (T,) (fx = fy) or (T,2) (fx, fy), principal
+    (2,) (every frame's) or (T,2), pixels -> (T,H,W,3)."""
+    fxy = focal[:, None].expand(-1, 2) if focal.ndim == 1 else focal  # (T,2)
+    c = principal.expand(len(fxy), 2)  # (T,2)
     v, u = torch.meshgrid(
         torch.arange(height, dtype=focal.dtype, device=focal.device),
         torch.arange(width, dtype=focal.dtype, device=focal.device),
         indexing="ij",
     )  # (H,W) each
-    x = (u - principal[0])[None] / focal[:, None, None]  # (T,H,W)
-    y = (v - principal[1])[None] / focal[:, None, None]  # (T,H,W)
+    x = (u[None] - c[:, 0, None, None]) / fxy[:, 0, None, None]  # (T,H,W)
+    y = (v[None] - c[:, 1, None, None]) / fxy[:, 1, None, None]  # (T,H,W)
     return torch.stack([x, y, torch.ones_like(x)], dim=-1)  # (T,H,W,3)
 
 
 class SceneParams(nn.Module):
     """Depth, poses, focals and per-edge similarities as `nn.Parameter`s (see module docstring).
 
-    Initial values: depth (T,H,W) > 0, cam_to_world (T,4,4) rigid, focal (T,), edge_scale (E,),
-    edge_rotation (E,3,3), edge_translation (E,3).
+    Initial values: depth (T,H,W) > 0, cam_to_world (T,4,4) rigid, focal (T,) fx, edge_scale (E,),
+    edge_rotation (E,3,3), edge_translation (E,3); constants: principal (T,2) pixels (None: the
+    image centre), aspect (T,) fy/fx (None: 1), and with `fixed_focal` the focal.
     """
 
     def __init__(
@@ -64,17 +71,26 @@ class SceneParams(nn.Module):
         edge_rotation: torch.Tensor,
         edge_translation: torch.Tensor,
         shared_focal: bool = False,
+        principal: torch.Tensor | None = None,
+        aspect: torch.Tensor | None = None,
+        fixed_focal: bool = False,
     ):
         super().__init__()
         num_frames, height, width = depth.shape
         self.image_size = (height, width)
-        self.shared_focal = shared_focal
-        self.register_buffer("principal", torch.tensor([(width - 1) / 2, (height - 1) / 2]))
+        self.shared_focal = shared_focal and not fixed_focal
+        if principal is None:
+            principal = torch.tensor([(width - 1) / 2, (height - 1) / 2]).expand(num_frames, 2)
+        self.register_buffer("principal", principal.clone().float())  # (T,2)
+        self.register_buffer("aspect", torch.ones(num_frames) if aspect is None else aspect.clone().float())
         self.log_depth = nn.Parameter(depth.clamp_min(1e-6).log())  # (T,H,W)
         self.quat = nn.Parameter(rotation_to_quat(cam_to_world[:, :3, :3]))  # (T,4)
         self.trans = nn.Parameter(cam_to_world[:, :3, 3].clone())  # (T,3)
         log_f = focal.log() * FOCAL_BREAK  # (T,)
-        self.focal_param = nn.Parameter(log_f.mean(0, keepdim=True) if shared_focal else log_f)
+        if fixed_focal:
+            self.register_buffer("focal_param", log_f)
+        else:
+            self.focal_param = nn.Parameter(log_f.mean(0, keepdim=True) if shared_focal else log_f)
         self.edge_quat = nn.Parameter(rotation_to_quat(edge_rotation))  # (E,4)
         self.edge_trans = nn.Parameter(edge_translation.clone())  # (E,3)
         self.edge_log_scale = nn.Parameter(edge_scale.log())  # (E,)
@@ -89,13 +105,17 @@ class SceneParams(nn.Module):
         return quat_to_rotation(self.quat)  # (T,3,3)
 
     def focals(self) -> torch.Tensor:
-        return (self.focal_param / FOCAL_BREAK).exp().expand(self.num_frames)  # (T,)
+        return (self.focal_param / FOCAL_BREAK).exp().expand(self.num_frames)  # (T,) fx
+
+    def focals_xy(self) -> torch.Tensor:
+        f = self.focals()
+        return torch.stack([f, f * self.aspect], -1)  # (T,2) fx, fy
 
     def intrinsics(self) -> torch.Tensor:
         k = torch.zeros(self.num_frames, 3, 3, dtype=self.trans.dtype, device=self.trans.device)
-        f = self.focals()
-        k[:, 0, 0], k[:, 1, 1] = f, f
-        k[:, 0, 2], k[:, 1, 2], k[:, 2, 2] = self.principal[0], self.principal[1], 1.0
+        f = self.focals_xy()
+        k[:, 0, 0], k[:, 1, 1] = f[:, 0], f[:, 1]
+        k[:, 0, 2], k[:, 1, 2], k[:, 2, 2] = self.principal[:, 0], self.principal[:, 1], 1.0
         return k  # (T,3,3)
 
     def cam_to_world(self) -> torch.Tensor:
@@ -107,7 +127,7 @@ class SceneParams(nn.Module):
 
     def camera_points(self) -> torch.Tensor:
         """(T,H,W,3) every pixel in its own camera frame."""
-        rays = pixel_rays(*self.image_size, self.focals(), self.principal)  # (T,H,W,3)
+        rays = pixel_rays(*self.image_size, self.focals_xy(), self.principal)  # (T,H,W,3)
         return rays * self.depth()[..., None]
 
     def camera_points_channels_first(self) -> torch.Tensor:
@@ -116,9 +136,9 @@ class SceneParams(nn.Module):
         height, width = self.image_size
         v, u = torch.meshgrid(torch.arange(height, dtype=self.trans.dtype, device=self.trans.device),
                               torch.arange(width, dtype=self.trans.dtype, device=self.trans.device), indexing="ij")
-        offsets = torch.stack([u.flatten() - self.principal[0], v.flatten() - self.principal[1]])  # (2,P)
+        offsets = torch.stack([u.flatten(), v.flatten()])[None] - self.principal[:, :, None]  # (T,2,P)
         depth = self.depth().flatten(1)[:, None]  # (T,1,P)
-        xy = offsets[None] / self.focals()[:, None, None] * depth  # (T,2,P)
+        xy = offsets / self.focals_xy()[:, :, None] * depth  # (T,2,P)
         return torch.cat([xy, depth], 1)
 
     def world_points(self, cam_points: torch.Tensor | None = None) -> torch.Tensor:

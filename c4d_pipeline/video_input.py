@@ -7,7 +7,8 @@ this module adds DUSt3R's geometric preprocessing (dust3r `load_images`):
   multiple of 16, and make square results 4:3 (e.g. 512x384) unless `square_ok`;
 - size 224: resize so the long side is round(224 * aspect ratio) (the short side becomes 224),
   then centre-crop 224x224.
-The resize-and-crop is also returned as an intrinsics transform, so ground truth can follow it.
+The resize-and-crop is also returned as an intrinsics transform, so ground truth and known
+intrinsics (`intrinsics.known`, `read_intrinsics` and `network_intrinsics`) can follow it.
 """
 
 from __future__ import annotations
@@ -123,3 +124,55 @@ def load_video_input(path: str | Path, size: int = 512, stride: int = 1, max_fra
                  "network frames %dx%d (DUSt3R's rule for a square input at size %d)", W, H,
                  x0 * W / rw, (x0 + ow) * W / rw, y0 * H / rh, (y0 + oh) * H / rh, ow, oh, size)
     return VideoInput(frames, np.arange(len(raw)) * stride, plan, Path(path), video_fps(path))
+
+
+def read_intrinsics(spec: str) -> np.ndarray:
+    """Known intrinsics `intrinsics.known` (--intrinsics) in the source video's pixels: "fx,fy,cx,cy"
+    (every frame) or a text file (numbers split by spaces or commas, # comments) or .npy file with
+    one row fx fy cx cy per source frame, or one row for all -> float64 (N,4). Checked before any
+    heavy work: not 4 numbers a row, a non-finite value or a focal <= 0 is a one-line `UserError`."""
+    what = f"--intrinsics {spec!r}"
+    path = Path(spec)
+    try:
+        if path.is_file() and path.suffix == ".npy":
+            rows = np.load(path, allow_pickle=False).astype(np.float64)
+        elif path.is_file():
+            lines = path.read_text(errors="replace").replace(",", " ").splitlines()
+            rows = np.loadtxt(lines, ndmin=2)
+        else:
+            rows = np.array([float(x) for x in spec.split(",")])
+    except (ValueError, OSError) as exc:
+        hint = str(exc).splitlines()[0] if path.is_file() else "not a file, nor numbers fx,fy,cx,cy"
+        raise UserError(f"{what}: {hint}; give fx,fy,cx,cy in the source video's pixels or a "
+                        ".txt/.npy file with one row fx fy cx cy per source frame") from None
+    rows = rows[None] if rows.ndim == 1 else rows
+    if rows.ndim != 2 or rows.shape[1] != 4 or not len(rows):
+        raise UserError(f"{what}: {'x'.join(map(str, rows.shape))} values; give 4 numbers a row: "
+                        "fx fy cx cy (pixels of the source video)")
+    bad = ~np.isfinite(rows).all(1) | (rows[:, :2] <= 0).any(1)
+    if bad.any():
+        n = int(np.flatnonzero(bad)[0])
+        raise UserError(f"{what}: row {n} is {' '.join(f'{v:g}' for v in rows[n])}; every value must be "
+                        "finite and the focal lengths fx, fy > 0 pixels")
+    return rows
+
+
+def network_intrinsics(rows: np.ndarray, video: VideoInput, read_whole: bool) -> np.ndarray:
+    """Known intrinsics (N,4) from `read_intrinsics` -> float32 (T,4) fx, fy, cx, cy in the network
+    frames' pixels: the one row for every frame, else the row of each frame's source index, scaled
+    and shifted with the frames' resize and crop (`Preprocessing.intrinsics`, pixel centres kept as
+    `c4d_core.geometry.rescale_pixels`). `read_whole`: the video was read to its end (not cut by
+    --max-frames), so N may not exceed its frame count either; a wrong row count is a `UserError`."""
+    indices = video.source_indices
+    stride = int(indices[1] - indices[0]) if len(indices) > 1 else 1
+    need = int(indices[-1]) + 1  # the source frames read reach this far
+    if len(rows) != 1 and (len(rows) < need or (read_whole and len(rows) >= need + stride)):
+        count = f"{need}" if stride == 1 or not read_whole else f"{need} to {need + stride - 1}"
+        raise UserError(f"--intrinsics has {len(rows)} rows, but the video has {count} source frames"
+                        f"{'' if read_whole else ' up to the last one read'}; give one row fx fy cx cy "
+                        "per source frame (before --stride), or one row for every frame")
+    known = rows[indices if len(rows) > 1 else np.zeros(len(indices), int)]  # (T,4)
+    k = np.zeros((len(indices), 3, 3))
+    k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2], k[:, 2, 2] = *known.T, 1.0
+    k = video.preprocessing.intrinsics(k)  # (T,3,3)
+    return np.stack([k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2]], -1).astype(np.float32)

@@ -68,14 +68,17 @@ def make_box_scene(
     num_tracks: int = 64,
     seed: int = 0,
     focal: float | None = None,
+    intrinsics: np.ndarray | None = None,
 ) -> Scene:
     """A camera arcing around a floor with two static boxes and (if `moving`) one sliding box.
 
-    Units follow the contract (Kubric scale: boxes ~1.5 units, camera ~8 units away).
+    Units follow the contract (Kubric scale: boxes ~1.5 units, camera ~8 units away). The camera
+    matrix is `intrinsics` (3,3) if given, else focal `focal` (default 0.9 W) at the image centre.
     """
     rng = np.random.default_rng(seed)
     f = focal or 0.9 * width
     k = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    k = k if intrinsics is None else np.asarray(intrinsics, np.float64)
     t = np.arange(num_frames)
     angle = 0.6 + 0.5 * t / max(num_frames - 1, 1) + 0.05 * rng.standard_normal()
     eyes = np.stack([7.5 * np.cos(angle), 7.5 * np.sin(angle), 3.5 + 0.3 * np.sin(t / 3)], -1)
