@@ -237,8 +237,7 @@ def training_run(train_dir: Path, val_dir: Path, out: Path, sizes: Sizes, deadli
     try:
         ev = calib.cfg.eval
         start = time.perf_counter()
-        before = evaluate_model(calib.model, calib.val_scenes, ev, calib.device,
-                                query_mode=ev.query_mode)["summary"]
+        before = evaluate_model(calib.model, calib.val_scenes, ev, calib.device)["summary"]
         eval_seconds = time.perf_counter() - start
         batches = iter(calib.loader)
         calib.train_step(batches)  # warm-up (workers start, kernels are chosen)

@@ -314,6 +314,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "eval.source": text(), "eval.every": POSITIVE, "eval.num_scenes": POSITIVE,
         "eval.num_tracks": COUNT, "eval.resolution": tracker_size(), "eval.seed": SEED,
         "eval.query_mode": text("first", "strided"), "eval.best_metric": text(),
+        "eval.protocol": text("scene", "c4d-paper"),
         "eval.foreign": text("refuse", "skip"),
     },
     "c4d": {

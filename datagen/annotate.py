@@ -13,6 +13,7 @@ cam_to_world (T,4,4) OpenCV, intrinsics (T,3,3).
 from __future__ import annotations
 
 import functools
+import types
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,18 +92,23 @@ def optical_flow(depth, segmentation, intrinsics, cam_to_world, object_to_world)
     return fwd, bwd
 
 
-def allocate_points(counts: np.ndarray, total: int, max_fraction: float) -> np.ndarray:
+def allocate_points(counts: np.ndarray, total: int, max_fraction: float,
+                    exact_kubric: bool = False) -> np.ndarray:
     """How many tracks each segment gets: about equal shares, at most `max_fraction` of its count.
 
     Segments are visited from the smallest; a segment's unused share passes on to larger ones
-    (TAP-Vid-Kubric's rule), so small objects are not drowned by the background.
+    (TAP-Vid-Kubric's rule), so small objects are not drowned by the background. The cap is
+    ceil(max_fraction * count) and never more than the count (our generator draws without
+    replacement); `exact_kubric` caps at round(max_fraction * count) as `get_num_to_sample` does.
     """
     alloc = np.zeros(len(counts), dtype=np.int64)
     order = np.argsort(counts, kind="stable")
     remaining = total
     for i, seg in enumerate(order):
         share = int(round(remaining / (len(order) - i)))
-        alloc[seg] = min(share, int(np.ceil(max_fraction * counts[seg])), counts[seg])
+        cap = int(round(max_fraction * counts[seg])) if exact_kubric \
+            else min(int(np.ceil(max_fraction * counts[seg])), int(counts[seg]))
+        alloc[seg] = min(share, cap)
         remaining -= alloc[seg]
     return alloc
 
@@ -147,13 +153,16 @@ class Tracks:
 
 
 def sample_queries(segmentation: np.ndarray, rng: np.random.Generator, num_points: int,
-                   frame_stride: int, pixel_stride: int, max_fraction: float):
+                   frame_stride: int, pixel_stride: int, max_fraction: float,
+                   exact_kubric: bool = False):
     """Query (t, y, x) integer points spread over strided frames and evenly over segments.
 
     Candidates form a (frame, row, col) grid of the given strides with a random phase per axis;
-    each segment (backdrop included) gets an about equal share (`allocate_points`), drawn without
-    replacement. Returns int arrays t, y, x of length num_points (repeating points if the grid
-    is too small, as TAP-Vid-Kubric pads).
+    each segment (backdrop included) gets an about equal share (`allocate_points`). Our generator
+    draws a segment's share without replacement, in random order, and repeats random points if
+    the grid is too small. `exact_kubric` follows TAP-Vid-Kubric's sampler instead (reference
+    kubric_movi.md 3.2): with replacement, segments in ascending id order, and a short draw padded
+    by repeating its second-to-last point. Returns int arrays t, y, x of length num_points.
     """
     num_frames, height, width = segmentation.shape
     t0, y0, x0 = (int(rng.integers(min(frame_stride, num_frames))),
@@ -165,11 +174,16 @@ def sample_queries(segmentation: np.ndarray, rng: np.random.Generator, num_point
     tt, yy, xx = tt.ravel(), yy.ravel(), xx.ravel()
     seg = segmentation[tt, yy, xx]
     ids, inverse, counts = np.unique(seg, return_inverse=True, return_counts=True)
-    alloc = allocate_points(counts, num_points, max_fraction)
+    alloc = allocate_points(counts, num_points, max_fraction, exact_kubric)
     chosen = np.concatenate([
-        rng.choice(np.flatnonzero(inverse == j), size=alloc[j], replace=False)
+        rng.choice(np.flatnonzero(inverse == j), size=alloc[j], replace=exact_kubric)
         for j in range(len(ids))
     ])
+    if exact_kubric:
+        if 0 < len(chosen) < num_points:
+            pad = chosen[-2:-1] if len(chosen) > 1 else chosen[-1:]
+            chosen = np.concatenate([chosen, np.repeat(pad, num_points - len(chosen))])
+        return tt[chosen], yy[chosen], xx[chosen]
     chosen = rng.permutation(chosen)
     if len(chosen) < num_points:  # too few candidates: repeat some
         chosen = np.concatenate([chosen, rng.choice(chosen, num_points - len(chosen))])
@@ -202,13 +216,18 @@ def occlusion(pixels: np.ndarray, z: np.ndarray, track_object: np.ndarray, depth
 
 
 def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
-                 rng: np.random.Generator, cfg, mobility_threshold: float) -> Tracks:
-    """TAP-Vid-Kubric-style tracks with world positions, displacement and mobility labels."""
+                 rng: np.random.Generator, cfg, mobility_threshold: float,
+                 exact_kubric: bool = False) -> Tracks:
+    """TAP-Vid-Kubric-style tracks with world positions, displacement and mobility labels.
+
+    `cfg.tracks` holds the sampling settings (num_points, query_stride, grid_stride,
+    max_sampled_fraction, depth_tolerance); `exact_kubric` samples the queries exactly as
+    TAP-Vid-Kubric does (`sample_queries`)."""
     c = cfg.tracks
     num_frames = depth.shape[0]
     poses = segment_poses(object_to_world)  # (K+1,T,4,4)
     tq, yq, xq = sample_queries(segmentation, rng, int(c.num_points), int(c.query_stride),
-                                int(c.grid_stride), float(c.max_sampled_fraction))
+                                int(c.grid_stride), float(c.max_sampled_fraction), exact_kubric)
     obj = segmentation[tq, yq, xq]  # (N,)
     query_world = geometry.unproject(np.stack([xq, yq], -1), depth[tq, yq, xq],
                                      intrinsics[tq], cam_to_world[tq])  # (N,3)
@@ -246,6 +265,32 @@ def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
         displacement=displacement.astype(np.float32),
         moving=displacement > mobility_threshold,
     )
+
+
+# TAP-Vid-Kubric's defaults (kubric challenges/point_tracking/dataset.py, as tapnet calls it;
+# reference kubric_movi.md 3.2-3.4): 256 tracks, a stride-4 (t, y, x) grid, at most 10 % of a
+# segment's grid points, 1 % depth tolerance.
+TAPVID_KUBRIC_TRACKS = {"num_points": 256, "query_stride": 4, "grid_stride": 4,
+                        "max_sampled_fraction": 0.1, "depth_tolerance": 0.01}
+
+
+def tapvid_kubric_tracks(scene, seed, num_tracks: int = 256) -> Tracks:
+    """`num_tracks` tracks of a Scene drawn afresh as TAP-Vid-Kubric draws them, seeded.
+
+    Needs the scene's depth, segmentation, cameras and object poses (datagen shards, or a reader
+    of Kubric's data); its mobility threshold is `scene.meta['mobility_threshold']` (world units
+    a frame). `seed`: an int or a sequence of ints for `np.random.default_rng` (e.g. [seed,
+    video index]). Raises ValueError when a layer is missing.
+    """
+    missing = [name for name in ("depth", "segmentation", "object_to_world")
+               if getattr(scene, name) is None]
+    if missing:
+        raise ValueError(f"drawing TAP-Vid-Kubric tracks needs the scene's {', '.join(missing)}")
+    cfg = types.SimpleNamespace(tracks=types.SimpleNamespace(
+        **{**TAPVID_KUBRIC_TRACKS, "num_points": num_tracks}))
+    return point_tracks(scene.depth, scene.segmentation, scene.intrinsics, scene.cam_to_world,
+                        scene.object_to_world, np.random.default_rng(seed), cfg,
+                        float(scene.meta["mobility_threshold"]), exact_kubric=True)
 
 
 # Box corner order (8,3) of 0/1 = min/max per axis: x slowest, then y, then z (Kubric's order).

@@ -29,6 +29,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=("first", "strided"), default=None,
                         help="TAP-Vid query mode (key eval.query_mode; default: the checkpoint's "
                         "own, else first)")
+    parser.add_argument("--protocol", choices=("scene", "c4d-paper"), default=None,
+                        help="key eval.protocol: scene (default: the scenes' own tracks at "
+                             "eval.resolution, --mode queries) or c4d-paper (the paper's D-ACC "
+                             "protocol: the first 24 frames at 256x256, 256 tracks drawn as "
+                             "TAP-Vid-Kubric draws them, seeded by eval.seed)")
     parser.add_argument("--out", default=None,
                         help="folder for eval.json and eval.md (default: next to the checkpoint, "
                              "CKPT_FOLDER/eval-DATA-MODE)")
@@ -53,6 +58,25 @@ def eval_config(ckpt: dict, config: str | None, overrides: list[str]):
     if saved and not config:
         cfg = OmegaConf.merge(cfg, saved, asked)
     return OmegaConf.merge(cfg, {"num_scenes": asked.get("num_scenes", 0)})  # checked by load_config
+
+
+def apply_protocol(cfg, overrides: list[str]):
+    """(`cfg`, query mode) under `cfg.protocol`: `scene` keeps both as they are; c4d-paper fixes
+    256 tracks at 256x256, queried at their drawn points (mode 'sampled'), and refuses a
+    command-line setting that contradicts it."""
+    from dynpt.evaluate import PAPER_RESOLUTION, PAPER_TRACKS, protocol_query_mode
+
+    if cfg.protocol != "c4d-paper":
+        return cfg, protocol_query_mode(cfg)
+    fixed = {"resolution": list(PAPER_RESOLUTION), "num_tracks": PAPER_TRACKS}
+    asked = parse_overrides(overrides).get("eval", {})
+    size = f"{PAPER_RESOLUTION[0]}x{PAPER_RESOLUTION[1]}"
+    for key in ("resolution", "num_tracks", "query_mode"):
+        if key in asked and asked[key] != fixed.get(key):
+            raise UserError(f"eval.{key}={asked[key]} contradicts --protocol c4d-paper, which scores "
+                            f"{PAPER_TRACKS} tracks at {size} queried at their drawn points: "
+                            f"leave {'--mode' if key == 'query_mode' else 'eval.' + key} out")
+    return OmegaConf.merge(cfg, fixed), protocol_query_mode(cfg)
 
 
 def shard_scenes(source: str) -> int:
@@ -94,11 +118,12 @@ def run(args: argparse.Namespace) -> int:
     if args.device is not None:
         device_rule().check("--device", args.device)
     ckpt = load_checkpoint(args.ckpt)
-    overrides = [*args.overrides, *flag_overrides({"eval.query_mode": args.mode}, args.overrides)]
-    cfg = eval_config(ckpt, args.config, overrides)
-    mode = cfg.query_mode
+    overrides = [*args.overrides, *flag_overrides({"eval.query_mode": args.mode,
+                                                   "eval.protocol": args.protocol}, args.overrides)]
+    cfg, mode = apply_protocol(eval_config(ckpt, args.config, overrides), overrides)
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(args.data).stem) or "data"
-    out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{mode}"
+    how = "c4d-paper" if cfg.protocol == "c4d-paper" else mode
+    out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{how}"
     check_folder(out, "eval", args.overwrite)  # before the work
     tracker = Tracker(model_from_checkpoint(ckpt, args.ckpt), args.device)
     skipped: list[str] = []  # scenes that could not be read (warned about, counted in the table)
@@ -116,7 +141,11 @@ def run(args: argparse.Namespace) -> int:
     size = "x".join(str(v) for v in cfg.resolution)
     tracks = f", {cfg.num_tracks} tracks per video" if kind == "shards" else ""
     title = f"{Path(args.data).name} ({mode} queries, videos at {size}{tracks})"
+    if cfg.protocol == "c4d-paper":
+        title = (f"{Path(args.data).name} (the c4d-paper protocol: 24 frames at {size}, "
+                 f"{cfg.num_tracks} TAP-Vid-Kubric tracks per video, seed {cfg.seed})")
     info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": mode,
+            "protocol": cfg.protocol, "seed": cfg.seed,
             "skipped": skipped, "videos_in_data": total, "num_scenes": cfg.num_scenes,
             "resolution": list(cfg.resolution), "num_tracks": cfg.num_tracks if kind == "shards" else None}
     with output_folder(out, "eval", args.overwrite):

@@ -1,17 +1,26 @@
 """Evaluating a DynPT tracker: D-ACC (mobility) and the TAP-Vid metrics.
 
-Sources: datagen shards (a directory, shard or glob), where every scene is resized to the eval
-resolution (256x256) and `eval.num_tracks` (256) tracks visible somewhere are drawn with a fixed
-seed, like the paper's D-ACC protocol; or TAP-Vid DAVIS / Kinetics pickles (dynpt.tapvid_data).
-Queries follow the benchmark's 'first' or 'strided' mode. TAP-Vid metrics are computed per video
-and averaged over videos. D-ACC pools every (query, frame) pair of the source, except the query
-frame itself, and is also reported separately on ground-truth moving and static pairs.
+Sources: datagen shards (a directory, shard or glob) or TAP-Vid DAVIS / Kinetics pickles
+(dynpt.tapvid_data). Two protocols (`eval.protocol`) make a shard scene an evaluation item:
+  - `scene`: the scene's own tracks; the video is resized to the eval resolution and
+    `eval.num_tracks` tracks visible somewhere are chosen with a fixed seed; queries follow the
+    TAP-Vid benchmark's 'first' or 'strided' mode;
+  - `c4d-paper`, the paper's D-ACC protocol (its sec. 4: 24-frame 256x256 Kubric videos, 256
+    tracks): the first 24 frames, 256 tracks drawn afresh from the scene's depth, segmentation and
+    poses exactly as TAP-Vid-Kubric draws them (`datagen.annotate.tapvid_kubric_tracks`, seeded
+    by `eval.seed` and the video's index), video and tracks resized to 256x256; each track is
+    queried at its drawn point and scored on every other frame (the 'strided' rule).
+TAP-Vid metrics are computed per video and averaged over videos. D-ACC pools every (query, frame)
+pair of the source, except the query frame itself, and is also reported separately on
+ground-truth moving and static pairs, with their mean (balanced) and the average precision of the
+"moving" probability over the same pairs.
 A corrupt or incomplete scene (or the unreadable rest of a truncated shard) is skipped with a
 warning naming shard and scene; the report counts the skipped ones.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -22,29 +31,37 @@ from c4d_core.draw import contact_sheet, draw_tracks_enlarged
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
 from c4d_core.geometry import swap_track_axes
+from datagen.annotate import tapvid_kubric_tracks
 from datagen.shards import ForeignData, decode_scene, iter_samples, list_shards, lost_scenes
 from dynpt.augment import resize_clip
-from dynpt.metrics import dynamic_accuracy, paired_bootstrap_interval, tapvid_metrics
+from dynpt.metrics import (average_precision, dynamic_accuracy, paired_bootstrap_interval,
+                           tapvid_metrics)
 from dynpt.tapvid_data import read_tapvid, sample_queries
 
 log = logging.getLogger(__name__)
 
 EVAL_FIELDS = ("rgb", "tracks", "occluded", "moving", "meta", "track_object", "objects")
+# The paper's D-ACC protocol: video length and size, tracks per video; the layers it draws from.
+PAPER_FRAMES, PAPER_RESOLUTION, PAPER_TRACKS = 24, (256, 256), 256
+PAPER_FIELDS = ("rgb", "meta", "objects", "depth", "segmentation", "intrinsics", "cam_to_world",
+                "object_to_world")
 TRACK_KINDS = ("background", "resting object", "tossed object")  # values of an item's `track_kind`
 TABLE_KEYS = {  # summary key -> column title; values are shown in percent
     "d_acc": "D-ACC", "d_acc_moving": "D-ACC moving", "d_acc_static": "D-ACC static",
-    "d_acc_balanced": "D-ACC balanced",
+    "d_acc_balanced": "D-ACC balanced", "moving_ap": "AP moving",
     "average_jaccard": "AJ", "average_pts_within_thresh": "<δ avg", "occlusion_accuracy": "OA",
 }
 
 
-def track_kinds(scene) -> np.ndarray | None:
-    """int8 (N,) index into TRACK_KINDS of what each track lies on, or None without the labels."""
-    if scene.track_object is None or scene.objects is None:
+def track_kinds(scene, track_object: np.ndarray | None = None) -> np.ndarray | None:
+    """int8 (N,) index into TRACK_KINDS of what each track lies on (the scene's own tracks, or
+    `track_object` int (N,) of other tracks of the scene), or None without the labels."""
+    track_object = scene.track_object if track_object is None else track_object
+    if track_object is None or scene.objects is None:
         return None
     tossed = np.array([False] + [bool(o.get("tossed", False)) for o in scene.objects])
-    kind = np.where(tossed[scene.track_object], 2, 1)
-    return np.where(scene.track_object == 0, 0, kind).astype(np.int8)
+    kind = np.where(tossed[track_object], 2, 1)
+    return np.where(track_object == 0, 0, kind).astype(np.int8)
 
 
 def scene_item(scene, index: int, eval_cfg) -> dict:
@@ -64,6 +81,54 @@ def scene_item(scene, index: int, eval_cfg) -> dict:
             "track_kind": None if kinds is None else kinds[chosen]}
 
 
+class UnfitVideo(UserError):
+    """A readable video that the evaluation protocol cannot score (e.g. too short): the whole
+    evaluation stops, since skipping it would score another set than the protocol's."""
+
+
+def paper_item(scene, index: int, eval_cfg) -> dict:
+    """A datagen Scene -> an evaluation item of the paper's D-ACC protocol (module docstring):
+    its first 24 frames, 256 TAP-Vid-Kubric tracks drawn at the video's own size with the seed
+    [eval_cfg.seed, index], then resized to 256x256. The item adds `query_frame` int (N,)."""
+    name = scene.name(index)
+    if scene.num_frames < PAPER_FRAMES:
+        raise UnfitVideo(f"{name} has {scene.num_frames} frames; the c4d-paper protocol scores "
+                        f"{PAPER_FRAMES}-frame videos: generate them with `c4d datagen ... "
+                        f"frames={PAPER_FRAMES}` (the movi presets' default)")
+    t = PAPER_FRAMES
+    scene = dataclasses.replace(
+        scene, rgb=scene.rgb[:t], depth=scene.depth[:t], segmentation=scene.segmentation[:t],
+        intrinsics=scene.intrinsics[:t], cam_to_world=scene.cam_to_world[:t],
+        object_to_world=scene.object_to_world[:, :t])
+    drawn = tapvid_kubric_tracks(scene, [int(eval_cfg.seed), index], PAPER_TRACKS)
+    clip = {"rgb": scene.rgb, "tracks": swap_track_axes(drawn.tracks),
+            "occluded": swap_track_axes(drawn.occluded), "moving": swap_track_axes(drawn.moving)}
+    if scene.image_size != PAPER_RESOLUTION:
+        clip = resize_clip(clip, PAPER_RESOLUTION)
+    return {"name": f"{scene.meta.get('preset', 'scene')}-{scene.meta.get('scene_index', index)}",
+            "video": clip["rgb"], "tracks": clip["tracks"], "occluded": clip["occluded"],
+            "moving": clip["moving"], "query_frame": drawn.query_frame.astype(np.int64),
+            "track_kind": track_kinds(scene, drawn.track_object)}
+
+
+def eval_fields(eval_cfg) -> tuple[str, ...]:
+    """The scene layers an evaluation protocol reads."""
+    return PAPER_FIELDS if eval_cfg.get("protocol") == "c4d-paper" else EVAL_FIELDS
+
+
+def protocol_query_mode(eval_cfg) -> str:
+    """How an evaluation under `eval_cfg` queries: 'sampled' (the drawn points) for c4d-paper,
+    else `eval_cfg.query_mode`."""
+    return "sampled" if eval_cfg.get("protocol") == "c4d-paper" else eval_cfg.query_mode
+
+
+def make_item(scene, index: int, eval_cfg) -> dict:
+    """A datagen Scene -> an evaluation item by `eval_cfg.protocol` (module docstring)."""
+    if eval_cfg.get("protocol") == "c4d-paper":
+        return paper_item(scene, index, eval_cfg)
+    return scene_item(scene, index, eval_cfg)
+
+
 def load_eval_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list[dict]:
     """The first `eval_cfg.num_scenes` (0: all) readable scenes of a shard source as evaluation
     items. Unreadable ones are skipped with a warning; their errors are appended to `skipped`."""
@@ -77,15 +142,17 @@ def load_eval_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list
     for shard in list_shards(source):
         read = 0
         try:
-            for read, raw in enumerate(iter_samples(shard, EVAL_FIELDS), 1):
+            for read, raw in enumerate(iter_samples(shard, eval_fields(eval_cfg)), 1):
                 if eval_cfg.num_scenes and len(items) >= eval_cfg.num_scenes:
                     return items
                 try:
-                    scene = decode_scene(raw, EVAL_FIELDS)
+                    scene = decode_scene(raw, eval_fields(eval_cfg))
                 except UserError as exc:
                     skip(exc)
                     continue
-                items.append(scene_item(scene, len(items) + len(skipped), eval_cfg))
+                items.append(make_item(scene, len(items) + len(skipped), eval_cfg))
+        except UnfitVideo:
+            raise
         except ForeignData as exc:  # not part of the dataset: refused, or skipped on request
             if eval_cfg.foreign != "skip":
                 raise UserError(f"{exc} (or set eval.foreign=skip to skip such shards with a "
@@ -103,6 +170,10 @@ def load_source(source: str, eval_cfg, skipped: list[str] | None = None) -> tupl
     benchmark's figures are over all of them, so a `num_scenes` is refused), and its kind."""
     text = os.fspath(source)
     if text.endswith(".pkl") or (Path(text).is_dir() and any(Path(text).glob("*.pkl"))):
+        if eval_cfg.get("protocol") == "c4d-paper":
+            raise UserError(f"the c4d-paper protocol draws its tracks from a scene's depth, "
+                            f"segmentation and poses, which a TAP-Vid benchmark ({text}) lacks: "
+                            "score it without --protocol")
         if eval_cfg.get("num_scenes"):
             raise UserError(f"eval.num_scenes={eval_cfg.num_scenes} is for datagen shards; a TAP-Vid "
                             f"benchmark ({text}) is scored on all its videos, as its published "
@@ -113,12 +184,18 @@ def load_source(source: str, eval_cfg, skipped: list[str] | None = None) -> tupl
 
 
 def track_item(tracker, item: dict, query_mode: str):
-    """Query `item`'s tracks by the benchmark's mode and track them.
+    """Query `item`'s tracks by the benchmark's mode ('first', 'strided'), or at the points the
+    c4d-paper protocol drew ('sampled', the item's `query_frame`), and track them.
 
     Returns (query_points (M,3) as (t, y, x), index (M,) of the queried tracks, TrackResult), or
     None when no track is visible.
     """
-    query_points, index = sample_queries(item["occluded"], item["tracks"], query_mode)
+    if query_mode == "sampled":  # the protocol's drawn points, each visible at its query frame
+        index = np.arange(item["tracks"].shape[1])
+        xy = item["tracks"][item["query_frame"], index]  # (N,2)
+        query_points = np.stack([item["query_frame"], xy[:, 1], xy[:, 0]], 1).astype(np.float32)
+    else:
+        query_points, index = sample_queries(item["occluded"], item["tracks"], query_mode)
     if len(index) == 0:
         log.warning("%s: no visible track to query; skipped", item["name"])
         return None
@@ -140,6 +217,8 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
     Returns {'summary': {key: float}, 'per_video': [{name, metrics...}], 'example': {...}}.
     """
     per_video, correct = [], {"moving": [0, 0], "static": [0, 0]}  # split -> [right, counted]
+    scores, labels = [], []  # the counted pairs' "moving" probabilities and truths
+    metrics_mode = "strided" if query_mode == "sampled" else query_mode  # every frame but the query's
     example = None
     for item in items:
         tracked = track_item(tracker, item, query_mode)
@@ -151,13 +230,15 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
         pred_occ = ~swap_track_axes(result.visible)[None]  # (1,M,T)
         with np.errstate(invalid="ignore", divide="ignore"):
             metrics = tapvid_metrics(query_points[None], gt_occ, gt_tracks, pred_occ,
-                                     swap_track_axes(result.tracks)[None], query_mode)
+                                     swap_track_axes(result.tracks)[None], metrics_mode)
         row = {"name": item["name"], "num_queries": int(len(index)),
                **{k: float(v[0]) for k, v in metrics.items()}}
         if item["moving"] is not None:
             gt_moving = item["moving"][:, index]  # (T,M)
             counted = mobility_counted(query_points, result.moving)  # (T,M)
             pred = result.moving > 0.5
+            scores.append(result.moving[counted])
+            labels.append(gt_moving[counted])
             for split, mask in (("moving", counted & gt_moving), ("static", counted & ~gt_moving)):
                 correct[split][0] += int(((pred == gt_moving) & mask).sum())
                 correct[split][1] += int(mask.sum())
@@ -181,6 +262,10 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
         # D-ACC pools pairs, so it is dominated by the (usually ~90%) static ones; the mean of the
         # per-class accuracies is 50% for any constant answer.
         summary["d_acc_balanced"] = (summary["d_acc_moving"] + summary["d_acc_static"]) / 2
+        scores, labels = np.concatenate(scores), np.concatenate(labels)
+        # A constant score (all static) ranks nothing: its AP is the share of moving pairs.
+        summary["moving_ap"] = (average_precision(scores, labels) if 0 < labels.sum() < labels.size
+                                else float("nan"))
     summary["num_videos"] = len(per_video)
     return {"summary": summary, "per_video": per_video, "example": example}
 
@@ -199,11 +284,12 @@ def d_acc_difference_interval(result: dict, baseline: dict, level: float = 0.95)
     return list(paired_bootstrap_interval(*counts, level=level))
 
 
-def evaluate_model(model, items: list[dict], eval_cfg, device, query_mode: str = "first") -> dict:
-    """`evaluate_items` for an in-memory model (used by training's validation)."""
+def evaluate_model(model, items: list[dict], eval_cfg, device) -> dict:
+    """`evaluate_items` for an in-memory model (used by training's validation), queried as
+    `eval_cfg`'s protocol says."""
     from dynpt.inference import Tracker
 
-    return evaluate_items(Tracker(model, device), items, query_mode)
+    return evaluate_items(Tracker(model, device), items, protocol_query_mode(eval_cfg))
 
 
 def track_image(example: dict, num_frames: int = 4, min_height: int = 256) -> np.ndarray:

@@ -469,8 +469,7 @@ class Trainer:
     def validate(self) -> dict:
         if not self.val_scenes:
             return {}
-        result = evaluate_model(self.model, self.val_scenes, self.cfg.eval, self.device,
-                                query_mode=self.cfg.eval.query_mode)
+        result = evaluate_model(self.model, self.val_scenes, self.cfg.eval, self.device)
         summary = result["summary"]
         for key, value in summary.items():
             if isinstance(value, float) and math.isfinite(value):
