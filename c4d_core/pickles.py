@@ -13,6 +13,10 @@ array as `_reconstruct(ndarray, (0,), ...)`, then fills it with bytes the file c
 a reconstruct call asking for more bytes than the file has is refused before allocating. A file
 that names one bytes object many times (the pickle memo) gets arrays that share it: numpy views
 the bytes of a pickled array instead of copying them.
+
+`np.save` of a dict (CoTracker's Kubric annotations) is a `.npy` file whose array is a pickled 0-d
+object array: `read_data_pickle(..., npy=True)` reads its header as text (numpy's header parser,
+a literal evaluator) and the pickle after it with the same restricted unpickler.
 """
 
 from __future__ import annotations
@@ -77,17 +81,35 @@ class _DataUnpickler(pickle.Unpickler):
         return _bounded(found, self.limit) if name == "_reconstruct" else found
 
 
-def read_data_pickle(path: str | os.PathLike, what: str, hint: str) -> Any:
+def _skip_npy_header(fh) -> None:
+    """Read past the header of the `.npy` file `fh`, which must hold a pickled object array (what
+    `np.save` writes for a dict); `pickle.UnpicklingError` for a file of plain numbers (no pickle)
+    and ValueError for a damaged header."""
+    version = np.lib.format.read_magic(fh)
+    if version not in ((1, 0), (2, 0)):
+        raise ValueError(f".npy format version {version}")
+    read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                   else np.lib.format.read_array_header_2_0)
+    _, _, dtype = read_header(fh)
+    if not dtype.hasobject:
+        raise pickle.UnpicklingError(f"an .npy file of {dtype} numbers, no pickled object")
+
+
+def read_data_pickle(path: str | os.PathLike, what: str, hint: str, npy: bool = False) -> Any:
     """The value pickled in `path`, built from arrays and plain values only.
 
-    `what` names the file in messages ("TAP-Vid pickle"), `hint` says what to do instead. Raises
-    `UserError` for a file that names any other class or function (it could run code), and for
-    one that is unreadable, cut short or no pickle at all, and for a path that is no regular file
-    (a named pipe, a device), before opening it.
+    `what` names the file in messages ("TAP-Vid pickle"), `hint` says what to do instead. `npy`:
+    the file is an `.npy` file of pickled objects (`np.save` of a dict); its header is skipped and
+    the value returned is the pickled object array (a dict's is 0-d: `.item()` gives the dict).
+    Raises `UserError` for a file that names any other class or function (it could run code), and
+    for one that is unreadable, cut short or no pickle at all, and for a path that is no regular
+    file (a named pipe, a device), before opening it.
     """
     path = check_regular_file(path, what, hint)
     try:
         with open(path, "rb") as fh:
+            if npy:
+                _skip_npy_header(fh)
             return _DataUnpickler(fh, os.fstat(fh.fileno()).st_size).load()
     except _TooLarge as exc:
         raise UserError(f"{what} {str(path)!r} asks for {exc}, more than its "

@@ -7,5 +7,5 @@ This package never imports torch, dynpt or c4d_pipeline.
 from datagen.scene import Scene
 from datagen.shards import read_scenes
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"  # 0.2.0: camera paths drawn as Kubric's worker draws them (docs/FORMAT.md)
 __all__ = ["Scene", "read_scenes"]

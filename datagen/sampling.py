@@ -39,18 +39,22 @@ class ObjectSpec:
 
 @dataclass
 class CameraSpec:
-    """A camera moving on a straight line from `start` (time -1) to `end` (time T)."""
+    """A camera moving on a straight line, as Kubric's MOVi worker keyframes it: at frame time t
+    of a T-frame video the eye is at `start` + (t + 1) / (T + 2) x (`end` - `start`), so it leaves
+    `start` at time -1 and would reach `end` at time T + 1 (the worker's keyframes 0..T+1 at
+    interp = frame / (T + 2): the rendered frames 0..T-1 cover T / (T + 2) of the segment, 23/26
+    at 24 frames). The look-at point moves from `lookat_start` to `lookat_end` alike."""
 
     focal_mm: float
     sensor_mm: float
-    start: np.ndarray  # (3,)
-    end: np.ndarray  # (3,)
+    start: np.ndarray  # (3,) eye at time -1
+    end: np.ndarray  # (3,) eye at time T + 1
     lookat_start: np.ndarray  # (3,)
     lookat_end: np.ndarray  # (3,)
 
     def pose_at(self, times: np.ndarray, num_frames: int) -> np.ndarray:
         """OpenCV camera-to-world (...,4,4) at frame times (...) in [-1, T]."""
-        alpha = (np.asarray(times, dtype=np.float64)[..., None] + 1.0) / (num_frames + 1.0)
+        alpha = (np.asarray(times, dtype=np.float64)[..., None] + 1.0) / (num_frames + 2.0)
         eye = self.start + alpha * (self.end - self.start)  # (...,3)
         target = self.lookat_start + alpha * (self.lookat_end - self.lookat_start)
         return geometry.look_at(eye, target)
@@ -81,45 +85,58 @@ class SceneDescription:
 
 
 def half_sphere_shell_point(rng: np.random.Generator, r_min: float, r_max: float,
-                            min_height: float) -> np.ndarray:
-    """A point uniform in volume in the upper half of a spherical shell, above `min_height`."""
+                            offset: float) -> np.ndarray:
+    """A point (3,) of the upper half of the spherical shell r_min <= |p| <= r_max, drawn as
+    Kubric's `sample_point_in_half_sphere_shell` draws it: a standard normal 3-vector, redrawn
+    while its own (unnormalised) z is below `offset`, normalised and put at radius
+    cbrt(U(r_min^3, r_max^3)), uniform in volume. The test on the raw normal draw, not on the
+    point, is Kubric's: it keeps fewer points near the floor than a test of the point's height."""
     while True:
-        direction = rng.normal(size=3)
-        direction /= np.linalg.norm(direction)
-        radius = np.cbrt(rng.uniform(r_min**3, r_max**3))
-        point = radius * direction
-        if point[2] > min_height:
-            return point
-
-
-def half_ball_point(rng: np.random.Generator, radius: float, max_height: float = np.inf):
-    """A point uniform in the upper half ball of `radius`, below `max_height`."""
-    while True:
-        point = rng.uniform(-radius, radius, size=3)
-        point[2] = abs(point[2])
-        if np.linalg.norm(point) <= radius and point[2] < max_height:
-            return point
+        normal = rng.normal(size=3)
+        if normal[2] >= offset:
+            break
+    return np.cbrt(rng.uniform(r_min**3, r_max**3)) * normal / np.linalg.norm(normal)
 
 
 def sample_camera(cfg, rng: np.random.Generator) -> CameraSpec:
-    """Kubric's `linear_movement` (and `linear_movement_linear_lookat` when panning)."""
+    """Kubric's `linear_movement` (and `linear_movement_linear_lookat` when panning), drawn as
+    `movi_def_worker.py` draws it (units: scene units).
+
+    The travel distance is drawn once, U(0, `max_movement`); then a shell point
+    (`half_sphere_shell_point` of `shell_radius`, offset `min_height`) and a direction
+    (U[0,1)^3 - 0.5, normalised) are redrawn together until the moved point, shell point +
+    distance x direction, lies in the shell with z > `min_height`. The worker's camera leaves the
+    moved point for the shell point (its keyframes are interp x shell point + (1 - interp) x
+    moved point), so the moved point is our `start`. Panning: the look-at path passes through a
+    point of the upper half ball of radius `lookat_through_radius`; one end is a point of the
+    upper half ball of radius `lookat_start_radius` below height `lookat_through_radius`, the
+    other continues through the first by U(0, `lookat_extend`) of their difference; the ends are
+    swapped with probability 1/2 and, as for the eye, the worker's second end is where it starts.
+    """
     c = cfg.camera
-    r_min, r_max = c.shell_radius
-    start = half_sphere_shell_point(rng, r_min, r_max, c.min_height)
+    r_min, r_max = (float(r) for r in c.shell_radius)
+    min_height = float(c.min_height)  # plain floats: a config read is slow inside the loop
+    distance = rng.uniform(0.0, c.max_movement)
     while True:
+        shell_point = half_sphere_shell_point(rng, r_min, r_max, min_height)
         direction = rng.random(3) - 0.5
-        direction /= np.linalg.norm(direction)
-        end = start + direction * rng.uniform(0.0, c.max_movement)
-        if r_min <= np.linalg.norm(end) <= r_max and end[2] > c.min_height:
+        moved = shell_point + direction / np.linalg.norm(direction) * distance
+        if r_min <= np.linalg.norm(moved) <= r_max and moved[2] > min_height:
             break
     lookat_start = lookat_end = np.zeros(3)
     if c.moving_lookat:
-        through = half_ball_point(rng, c.lookat_through_radius)
-        lookat_start = half_ball_point(rng, c.lookat_start_radius, max_height=1.0)
-        lookat_end = through + rng.uniform(0.0, c.lookat_extend) * (through - lookat_start)
+        through_radius = float(c.lookat_through_radius)
+        through = half_sphere_shell_point(rng, 0.0, through_radius, 0.0)
+        while True:
+            first = half_sphere_shell_point(rng, 0.0, float(c.lookat_start_radius), 0.0)
+            if first[2] < through_radius:
+                break
+        second = through + rng.uniform(0.0, c.lookat_extend) * (through - first)
         if rng.random() < 0.5:
-            lookat_start, lookat_end = lookat_end, lookat_start
-    return CameraSpec(float(c.focal_mm), float(c.sensor_mm), start, end, lookat_start, lookat_end)
+            first, second = second, first
+        lookat_start, lookat_end = second, first
+    return CameraSpec(float(c.focal_mm), float(c.sensor_mm), moved, shell_point, lookat_start,
+                      lookat_end)
 
 
 def sample_lights(cfg, rng: np.random.Generator) -> tuple[list[LightSpec], float]:

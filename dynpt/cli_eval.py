@@ -79,12 +79,15 @@ def apply_protocol(cfg, overrides: list[str]):
     return OmegaConf.merge(cfg, fixed), protocol_query_mode(cfg)
 
 
-def shard_scenes(source: str) -> int:
-    """How many scenes the shards of `source` hold: each shard's count from its dataset file,
-    else its scenes counted by reading past them (nothing is decoded; an unreadable rest is not
-    counted)."""
+def source_scenes(source: str) -> int:
+    """How many scenes `source` holds: for shards, each shard's count from its dataset file, else
+    its scenes counted by reading past them (nothing is decoded; an unreadable rest is not
+    counted); for Kubric's data (datagen.foreign), its listed scenes."""
+    from datagen.foreign import SHARDS, source_kind, source_units
     from datagen.shards import iter_samples, list_shards, scenes_in_shard
 
+    if source_kind(source) != SHARDS:
+        return len(source_units(source))
     total = 0
     for shard in list_shards(source):
         planned = scenes_in_shard(shard)
@@ -129,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
     skipped: list[str] = []  # scenes that could not be read (warned about, counted in the table)
     items, kind = load_source(args.data, cfg, skipped)  # the first eval.num_scenes (0: all)
     read_all = not cfg.num_scenes or len(items) < cfg.num_scenes
-    total = len(items) + len(skipped) if read_all else shard_scenes(args.data)
+    total = len(items) + len(skipped) if read_all else source_scenes(args.data)
     if not items:
         raise UserError(f"no readable scene in {args.data} ({len(skipped)} skipped, see the "
                         "warnings above); check it with `c4d inspect SOURCE --check`")

@@ -7,7 +7,12 @@ N tracks that are visible at their query frame -- at their first visible frame, 
 `visible` bool (T,N), `moving` bool (T,N), and, from `ShardStream`, `key` (the scene's shard
 key, e.g. `train-00000042`) and `position` int64 (the stream state after it).
 
-`ShardStream` streams one or more shard sets mixed with weights. Every DDP rank and DataLoader
+`ShardStream` streams one or more sources mixed with weights: shard sets, and other projects'
+Kubric data (TFDS MOVi records, CoTracker or Kubric worker folders: `datagen.foreign`), whose
+scenes ("units") are listed once and shared out like shards, each one a sample (tracks drawn with
+the training seed, mobility by `data.mobility_rule`, "point" unless set). A damaged unit stops
+training with one line naming it, or with `data.foreign=skip` is skipped with a warning and
+counted as bad. Every DDP rank and DataLoader
 worker reads its own slice ("split") of the shards (or of the samples, when there are fewer
 shards than splits). Per source and epoch, shards are permuted and samples pass a shuffle
 buffer, all seeded by (seed, source, epoch, split). Per sample, the source choice and the
@@ -45,6 +50,7 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from c4d_core.errors import UserError
+from datagen.foreign import SHARDS, options_from, read_unit, source_kind, source_units
 from datagen.scene import Scene
 from datagen.shards import ForeignData, decode_scene, iter_samples, list_shards, lost_scenes
 from dynpt.augment import augment_clip
@@ -165,7 +171,11 @@ class ShardStream(IterableDataset):
         if min(weights) < 0 or sum(weights) <= 0:
             raise UserError(f"data.weights must be >= 0 with a positive sum, got {list(weights)}")
         self.names = [str(s) for s in sources]
-        self.shards = [[str(p) for p in list_shards(s)] for s in sources]
+        self.kinds = [source_kind(s) for s in sources]
+        # per source: its shard paths, or the units (scenes) of another project's data
+        self.shards = [[str(p) for p in list_shards(s)] if kind == SHARDS else source_units(s)
+                       for s, kind in zip(sources, self.kinds)]
+        self.options = options_from(data_cfg, seed, TRAIN_FIELDS)
         self.probs = np.asarray(weights, float) / float(sum(weights))
         self.cfg, self.seed = data_cfg, int(seed)
         self.rank, self.world_size = rank, world_size
@@ -173,6 +183,9 @@ class ShardStream(IterableDataset):
 
     def _raw(self, source: int, epoch: int, split: int, num_splits: int) -> Iterator[dict]:
         """Raw (undecoded) samples of one epoch of one source for this split, shuffled."""
+        if self.kinds[source] != SHARDS:
+            yield from self._units(source, epoch, split, num_splits)
+            return
         shards = self.shards[source]
         order = _rng(self.seed, source, epoch).permutation(len(shards))
         by_shard = len(shards) >= num_splits
@@ -204,6 +217,28 @@ class ShardStream(IterableDataset):
                 self._bad(exc, mine_lost)
         while buffer:
             yield buffer.pop(int(rng.integers(len(buffer))))
+
+    def _units(self, source: int, epoch: int, split: int, num_splits: int) -> Iterator[dict]:
+        """One epoch of a foreign source for this split: its units (scenes) in a seeded
+        permutation, every `num_splits`-th from `split` on, each a raw sample naming its unit
+        (read and decoded only when taken, so a resume passes over the taken ones unread)."""
+        units = self.shards[source]
+        for i in _rng(self.seed, source, epoch).permutation(len(units))[split::num_splits]:
+            yield {"__key__": units[i].name, "__url__": units[i].path, "__unit__": units[i]}
+
+    def _decode(self, raw: dict) -> Scene:
+        """The Scene of a raw sample: a shard's members decoded, or a foreign unit read. A
+        damaged unit is refused with one line unless `data.foreign=skip` (then it is counted as
+        bad, as a damaged shard sample is)."""
+        if "__unit__" not in raw:
+            return decode_scene(raw, TRAIN_FIELDS)
+        try:
+            return read_unit(raw["__unit__"], self.options)
+        except UserError as exc:
+            if self.cfg.foreign != "skip":
+                raise _Refused(f"{exc} (or set data.foreign=skip to skip such scenes with a "
+                               "warning)") from None
+            raise
 
     def _source(self, source: int, epoch: int, taken: int, split: int, num_splits: int,
                 state: list[int]) -> Iterator[dict]:
@@ -263,7 +298,9 @@ class ShardStream(IterableDataset):
             state[0] = n + 1
             self._counts[0] += 1
             try:
-                scene = decode_scene(raw, TRAIN_FIELDS)
+                scene = self._decode(raw)
+            except _Refused:
+                raise
             except UserError as exc:
                 self._bad(exc)
                 self._fruitless(source, raw, str(exc))
@@ -280,6 +317,10 @@ class ShardStream(IterableDataset):
             yield {**sample, "key": raw["__key__"],
                    "position": np.array([split, num_splits] + state, np.int64),
                    "counts": np.array(self._counts, np.int64)}
+
+
+class _Refused(UserError):
+    """A damaged foreign unit, refused: it stops training instead of being counted as bad."""
 
 
 def _init_worker(worker_id: int) -> None:

@@ -32,6 +32,8 @@ from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
 from c4d_core.geometry import swap_track_axes
 from datagen.annotate import tapvid_kubric_tracks
+from datagen.foreign import (SHARDS, mobility_labels, options_from, read_unit, source_kind,
+                             source_units)
 from datagen.shards import ForeignData, decode_scene, iter_samples, list_shards, lost_scenes
 from dynpt.augment import resize_clip
 from dynpt.metrics import (average_precision, dynamic_accuracy, paired_bootstrap_interval,
@@ -89,7 +91,8 @@ class UnfitVideo(UserError):
 def paper_item(scene, index: int, eval_cfg) -> dict:
     """A datagen Scene -> an evaluation item of the paper's D-ACC protocol (module docstring):
     its first 24 frames, 256 TAP-Vid-Kubric tracks drawn at the video's own size with the seed
-    [eval_cfg.seed, index], then resized to 256x256. The item adds `query_frame` int (N,)."""
+    [eval_cfg.seed, index] and labelled by `eval_cfg.mobility_rule` (a point's or its object's
+    world motion), then resized to 256x256. The item adds `query_frame` int (N,)."""
     name = scene.name(index)
     if scene.num_frames < PAPER_FRAMES:
         raise UnfitVideo(f"{name} has {scene.num_frames} frames; the c4d-paper protocol scores "
@@ -101,8 +104,9 @@ def paper_item(scene, index: int, eval_cfg) -> dict:
         intrinsics=scene.intrinsics[:t], cam_to_world=scene.cam_to_world[:t],
         object_to_world=scene.object_to_world[:, :t])
     drawn = tapvid_kubric_tracks(scene, [int(eval_cfg.seed), index], PAPER_TRACKS)
+    moving = mobility_labels(drawn, scene.object_to_world, options_from(eval_cfg, eval_cfg.seed))
     clip = {"rgb": scene.rgb, "tracks": swap_track_axes(drawn.tracks),
-            "occluded": swap_track_axes(drawn.occluded), "moving": swap_track_axes(drawn.moving)}
+            "occluded": swap_track_axes(drawn.occluded), "moving": swap_track_axes(moving)}
     if scene.image_size != PAPER_RESOLUTION:
         clip = resize_clip(clip, PAPER_RESOLUTION)
     return {"name": f"{scene.meta.get('preset', 'scene')}-{scene.meta.get('scene_index', index)}",
@@ -131,7 +135,10 @@ def make_item(scene, index: int, eval_cfg) -> dict:
 
 def load_eval_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list[dict]:
     """The first `eval_cfg.num_scenes` (0: all) readable scenes of a shard source as evaluation
-    items. Unreadable ones are skipped with a warning; their errors are appended to `skipped`."""
+    items. Unreadable ones are skipped with a warning; their errors are appended to `skipped`.
+    Other projects' Kubric data is read by `load_foreign_scenes`."""
+    if source_kind(source) != SHARDS:
+        return load_foreign_scenes(source, eval_cfg, skipped)
     items: list[dict] = []
     skipped = [] if skipped is None else skipped
 
@@ -179,8 +186,37 @@ def load_source(source: str, eval_cfg, skipped: list[str] | None = None) -> tupl
                             f"benchmark ({text}) is scored on all its videos, as its published "
                             "figures are: leave eval.num_scenes out")
         return list(read_tapvid(text, tuple(eval_cfg.resolution))), "tapvid"
+    kind = source_kind(text)  # a UserError naming every kind expected for a folder of none
+    if kind != SHARDS:
+        return load_foreign_scenes(text, eval_cfg, skipped), kind
     list_shards(text)  # a clear UserError if there are no shards
     return load_eval_scenes(text, eval_cfg, skipped), "shards"
+
+
+def load_foreign_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list[dict]:
+    """The first `eval_cfg.num_scenes` (0: all) scenes of other projects' Kubric data
+    (`datagen.foreign`: TFDS MOVi records, CoTracker or Kubric worker folders) as evaluation items,
+    made by the protocol as shard scenes are; tracks the data lacks are drawn with `eval.seed`
+    (mobility by `eval.mobility_rule`, "point" unless set). A damaged scene stops the evaluation
+    with one line naming it, or with `eval.foreign=skip` is skipped with a warning and its error
+    appended to `skipped`."""
+    items: list[dict] = []
+    skipped = [] if skipped is None else skipped
+    options = options_from(eval_cfg, eval_cfg.seed, eval_fields(eval_cfg))
+    for unit in source_units(source):
+        if eval_cfg.num_scenes and len(items) >= eval_cfg.num_scenes:
+            break
+        try:
+            scene = read_unit(unit, options)
+        except UserError as exc:
+            if eval_cfg.foreign != "skip":
+                raise UserError(f"{exc} (or set eval.foreign=skip to skip such scenes with a "
+                                "warning)") from None
+            log.warning("skipping a damaged evaluation scene: %s", exc)
+            skipped.append(str(exc))
+            continue
+        items.append(make_item(scene, unit.index, eval_cfg))
+    return items
 
 
 def track_item(tracker, item: dict, query_mode: str):

@@ -278,7 +278,7 @@ def test_panning_camera_moves_its_look_at_point(assets):
     assert np.linalg.norm(camera.end - camera.start) <= 8.0
     for point in (camera.start, camera.end):
         assert 8.0 <= np.linalg.norm(point) <= 12.0 and point[2] > 0.1
-    poses = camera.pose_at(np.array([-1.0, 8.0]), 8)
+    poses = camera.pose_at(np.array([-1.0, 9.0]), 8)  # the path's ends: times -1 and T + 1
     for pose, target in zip(poses, (camera.lookat_start, camera.lookat_end)):
         _, z = geometry.project(target, np.eye(3), pose)
         ray = geometry.transform_points(geometry.invert_pose(pose), target)

@@ -161,7 +161,7 @@ def test_eval_scores_every_video_unless_asked_and_says_how_many_and_where(tmp_pa
     checkpoint by default); eval.num_scenes=5 on the command line scores the first 5 "of 12"
     (counted in shards without a dataset file: the scenes are read past); on a TAP-Vid pickle
     it is refused before anything is written."""
-    from dynpt.cli_eval import shard_scenes
+    from dynpt.cli_eval import source_scenes
     from tests.dynpt_testdata import generated_shards
 
     ckpt = tmp_path / "run" / "last.pt"
@@ -185,7 +185,7 @@ def test_eval_scores_every_video_unless_asked_and_says_how_many_and_where(tmp_pa
     assert f"wrote {chosen / 'eval.json'} and {chosen / 'eval.md'}\n" in printed
     report = json.loads((chosen / "eval.json").read_text())
     assert report["summary"]["num_videos"] == 5 and report["info"]["videos_in_data"] == 12
-    assert shard_scenes(str(generated_shards())) == 4  # from the dataset file `c4d datagen` wrote
+    assert source_scenes(str(generated_shards())) == 4  # from the dataset file `c4d datagen` wrote
     refused = tmp_path / "davis"
     assert main(["eval", "--ckpt", str(ckpt), "--data", str(davis_pickle), "--out", str(refused),
                  "eval.num_scenes=1"]) == 2

@@ -42,6 +42,14 @@ KUBRIC_LAYERS = ("rgba", "depth", "segmentation", "forward_flow", "backward_flow
 # read_png takes only 8- and 16-bit files
 PNG_KINDS = {"rgba": (8, 6), "segmentation": (8, 3), "forward_flow": (16, 2),
              "backward_flow": (16, 2), "normal": (16, 2), "object_coordinates": (16, 2)}
+# The GSO categories of Kubric's builders (movi_e.py's `category` ClassLabel, ../shared/reference/
+# kubric_movi.md 2.2), and the GSO asset our plain shapes are written as (docs/FORMAT.md): its
+# manifest keys as movi_e.py's asset table lists them and its scale_factor in movi_f.py's table
+GSO_CATEGORIES = {"Action Figures", "Bag", "Board Games", "Bottles and Cans and Cups", "Camera",
+                  "Car Seat", "Consumer Goods", "Hat", "Headphones", "Keyboard", "Legos",
+                  "Media Cases", "Mouse", "None", "Shoe", "Stuffed Toys", "Toys"}
+SHAPE_GSO = ("Closetmaid_Premium_Fabric_Cube_Red", 12158, "None", "Closetmaid Prem")
+SHAPE_SCALE_FACTOR = 0.32167
 
 
 @pytest.fixture(scope="module")
@@ -60,6 +68,16 @@ def plain(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("export") / "plain"
     assert main(["datagen", *DATAGEN, "--num-scenes", "1", "--seed", "9", "--out", str(out),
                  "layers.normal=false", "layers.object_coordinates=false"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def blurred(tmp_path_factory) -> Path:
+    """1 scene of the movi-f preset (written for Kubric's movi_f.py)."""
+    out = tmp_path_factory.mktemp("blurred") / "movi-f"  # not among the export* datasets below
+    assert main(["datagen", *DATAGEN, "--preset", "movi-f", "--num-scenes", "1", "--seed", "4",
+                 "--out", str(out), "layers.normal=true", "layers.object_coordinates=true",
+                 "layers.events=true"]) == 0
     return out
 
 
@@ -146,6 +164,9 @@ def test_kubric_export_is_kubric_s_worker_layout_of_our_scenes(full, scenes, tmp
         k = kubric_scene(folder)
         meta = k["meta"]
         assert meta["metadata"]["resolution"] == [w, h] and meta["metadata"]["num_frames"] == s.num_frames
+        # what movi_e.py serialises: the background's name, a string; no movi-f keys
+        assert meta["metadata"]["background"] == "procedural" and "height" not in meta["metadata"]
+        assert meta["flags"]["tfds_builder"] == "movi_e.py"
         assert np.array_equal(k["rgba"][..., :3], s.rgb) and (k["rgba"][..., 3] == 255).all()
 
         # depth: Euclidean distance from the camera centre, from our z-depth and K
@@ -188,7 +209,13 @@ def test_kubric_export_is_kubric_s_worker_layout_of_our_scenes(full, scenes, tmp
 
         # instances, in segmentation order
         for j, (obj, inst) in enumerate(zip(order, meta["instances"])):
-            assert inst["asset_id"] == s.objects[obj]["asset_id"]
+            assert inst["c4d_asset_id"] == s.objects[obj]["asset_id"]
+            assert inst["scale"] == s.objects[obj]["scale"]
+            # movi_e.py's asset_id_from_metadata: the GSO stand-in by its manifest keys
+            assert inst["category"] in GSO_CATEGORIES and isinstance(inst["nr_faces"], int)
+            if inst["c4d_asset_id"].startswith(("random_urdf/", "primitive/")):
+                assert (inst["asset_id"], inst["nr_faces"], inst["category"],
+                        inst["description"][:15]) == SHAPE_GSO
             assert inst["visibility"] == [int((seg[t] == j + 1).sum()) for t in range(s.num_frames)]
             frames = [t for t in range(s.num_frames) if (seg[t] == j + 1).any()]
             assert inst["bbox_frames"] == frames
@@ -216,6 +243,34 @@ def test_kubric_export_is_kubric_s_worker_layout_of_our_scenes(full, scenes, tmp
                                (s.events["image_position"][e] + 0.5) / [w, h], atol=1e-6)
             for key in ("force", "position", "contact_normal"):  # the float32 values, exactly
                 assert np.array_equal(np.float32(theirs[key]), s.events[key][e]), key
+
+
+def test_a_movi_f_scene_is_written_in_movi_f_py_s_conventions(blurred, tmp_path):
+    """movi_f.py reads `height` / `width`, `motion_blur`, multiplies the flow ranges by 512 and
+    an instance's scale by its asset's scale_factor, and takes the category from its own table."""
+    out = tmp_path / "kubric"
+    assert export("kubric", blurred, out)[0] == 0
+    scene = next(iter(read_scenes(blurred)))
+    meta = json.loads((out / "00000000" / "metadata.json").read_text())
+    ranges = json.loads((out / "00000000" / "data_ranges.json").read_text())
+    h, w = SIZE
+    assert meta["flags"]["tfds_builder"] == "movi_f.py"
+    assert (meta["metadata"]["height"], meta["metadata"]["width"]) == (h, w)
+    assert meta["metadata"]["motion_blur"] == scene.meta["motion_blur"] > 0
+    for name, flow in (("forward_flow", scene.flow_fwd), ("backward_flow", -scene.flow_bwd)):
+        assert np.isclose(ranges[name]["min"] * 512, flow.min(), rtol=1e-6)
+        assert np.isclose(ranges[name]["max"] * 512, flow.max(), rtol=1e-6)
+    counts = np.bincount(scene.segmentation.ravel(), minlength=len(scene.objects) + 1)[1:]
+    order = [int(i) for i in np.argsort(-counts, kind="stable") if counts[i] > 0]
+    shapes = 0
+    for obj, inst in zip(order, meta["instances"], strict=True):
+        ours = scene.objects[obj]
+        assert inst["c4d_asset_id"] == ours["asset_id"]
+        if ours["asset_id"].startswith(("random_urdf/", "primitive/")):
+            assert inst["asset_id"] == SHAPE_GSO[0]
+            assert np.isclose(inst["scale"] * SHAPE_SCALE_FACTOR, ours["scale"], rtol=1e-12)
+            shapes += 1
+    assert shapes > 0
 
 
 # --- CoTracker's Kubric training layout ----------------------------------------------------------

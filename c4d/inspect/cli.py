@@ -1,7 +1,8 @@
 """`c4d inspect SOURCE --out DIR`: a browsable report (index.html) of a shard set or a reconstruction.
 
-SOURCE is a shard set (a directory of shards, a .tar, a glob) or a directory written by `c4d run`;
-which one is detected from its files. `--check` validates every scene (or every reconstruction
+SOURCE is a shard set (a directory of shards, a .tar, a glob), other projects' Kubric data
+(TFDS MOVi records, CoTracker or Kubric worker folders: `datagen.foreign`) or a directory written
+by `c4d run`; which one is detected from its files. `--check` validates every scene (or every reconstruction
 file) and exits non-zero if anything is wrong.
 """
 
@@ -22,12 +23,15 @@ VIDEO_FORMATS = (".webm", ".mp4", ".gif", ".avi")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("source", metavar="SOURCE",
-                        help="shard set (directory of .tar shards, one .tar, or a quoted glob) "
-                             "or a reconstruction directory written by `c4d run`")
+                        help="shard set (directory of .tar shards, one .tar, or a quoted glob), "
+                             "Kubric data (TFDS MOVi records, e.g. DIR/movi_e/256x256/1.0.0:"
+                             "validation; CoTracker or Kubric worker folders) or a reconstruction "
+                             "directory written by `c4d run`")
     parser.add_argument("--out", type=Path,
                         help="folder for the report (index.html, plots, videos); "
                              "optional with --check, which then also writes check.json there")
-    parser.add_argument("--split", help="read only shards of this split (train, val, test)")
+    parser.add_argument("--split", help="read only shards (or TFDS records) of this split "
+                                        "(train, val, test; validation)")
     parser.add_argument("--scene", type=int, metavar="I",
                         help="detail report of the I-th scene (0-based, in reading order)")
     parser.add_argument("--num-samples", type=int, metavar="K",

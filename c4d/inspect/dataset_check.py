@@ -1,7 +1,8 @@
 """Validation of a shard set against the format (`c4d inspect SOURCE --check`), scene by scene.
 
-- `iter_dataset`: every sample of a shard set as a `Sample` (its Scene, or why it cannot be read),
-  streaming (memory stays at one scene); the dataset report reads through it too.
+- `iter_dataset`: every sample of a shard set (or every scene of other projects' Kubric data,
+  `datagen.foreign`) as a `Sample` (its Scene, or why it cannot be read), streaming (memory
+  stays at one scene); the dataset report reads through it too.
 - `validate_scene`: every way one scene breaks the contract (wrong shape or dtype, against
   `datagen.codecs.ARRAY_FIELDS`; non-finite values, ids out of range, occluded at query, mobility
   label disagreeing with the displacement; of the optional layers: normals not of unit length,
@@ -22,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from c4d_core.errors import UserError
-from datagen import shards
+from datagen import foreign, shards
 from datagen.annotate import segment_boxes
 from datagen.codecs import (ARRAY_FIELDS, CHECKSUMS, QUANTISED, QUANTUM, REQUIRED_FIELDS,
                             event_records, instance_records, wrong_layout)
@@ -48,12 +49,16 @@ class Sample:
 
 
 def iter_dataset(source, split: str | None = None, fields=None, full_first: int = 0) -> Iterator[Sample]:
-    """Every sample of `source` (anything `datagen.read_scenes` accepts), in reading order.
+    """Every sample of `source` (anything `datagen.read_scenes` accepts, or other projects'
+    Kubric data, `datagen.foreign`), in reading order.
 
     `fields`: decode only these Scene fields (default all), except for the first `full_first`
     samples, which are decoded in full. A corrupt sample or a truncated shard yields a `Sample`
     with `error` set, and reading goes on with the next sample or shard.
     """
+    if foreign.source_kind(source) != foreign.SHARDS:
+        yield from _iter_foreign(source, split, fields, full_first)
+        return
     count = 0
     for shard in shards.list_shards(source, split):
         try:
@@ -69,6 +74,22 @@ def iter_dataset(source, split: str | None = None, fields=None, full_first: int 
                     yield Sample(str(shard), raw["__key__"], scene, None, verified)
         except UserError as exc:  # the tar itself is truncated or corrupt
             yield Sample(str(shard), "?", None, str(exc))
+
+
+def _iter_foreign(source, split: str | None, fields, full_first: int) -> Iterator[Sample]:
+    """`iter_dataset` of other projects' Kubric data: one `Sample` per unit (its file or folder
+    as the shard, the rest of its name as the key; tracks the data lacks drawn with seed 0 and
+    our point mobility label); a damaged unit yields its error and reading goes on."""
+    for count, unit in enumerate(foreign.source_units(source, split)):
+        key = unit.name[len(unit.path):].strip() if unit.name.startswith(unit.path) else unit.name
+        options = foreign.ReadOptions(fields=None if count < full_first or fields is None
+                                      else tuple(fields))
+        try:
+            scene = foreign.read_unit(unit, options)
+        except UserError as exc:
+            yield Sample(unit.path, key or unit.name, None, str(exc))
+        else:
+            yield Sample(unit.path, key or unit.name, scene)
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,9 +168,11 @@ def validate_scene(scene: Scene, cfg) -> list[str]:
         low, high = int(scene.segmentation.min()), int(scene.segmentation.max())
         if low < 0 or high > num_objects:
             problems.append(f"segmentation ids span [{low}, {high}], outside [0, {num_objects}]")
-    if "flow_fwd" in ok and np.abs(scene.flow_fwd[-1]).max() > 0:
+    # Kubric renders a frame beyond each end, so its scenes' meta marks these flows valid
+    fwd_valid, bwd_valid = scene.meta.get("flow_fwd_valid"), scene.meta.get("flow_bwd_valid")
+    if "flow_fwd" in ok and not (fwd_valid and fwd_valid[-1]) and np.abs(scene.flow_fwd[-1]).max() > 0:
         problems.append("flow_fwd of the last frame is not zero (it has no next frame)")
-    if "flow_bwd" in ok and np.abs(scene.flow_bwd[0]).max() > 0:
+    if "flow_bwd" in ok and not (bwd_valid and bwd_valid[0]) and np.abs(scene.flow_bwd[0]).max() > 0:
         problems.append("flow_bwd of the first frame is not zero (it has no previous frame)")
     if "cam_to_world" in ok and np.isfinite(scene.cam_to_world).all():
         rot = scene.cam_to_world[:, :3, :3].astype(np.float64)
@@ -171,8 +194,15 @@ def validate_scene(scene: Scene, cfg) -> list[str]:
             hidden = int(scene.occluded[np.arange(scene.num_tracks), queries].sum())
             if hidden:
                 problems.append(f"{hidden} tracks are occluded at their query frame")
-    if {"moving", "displacement"} <= ok:
-        threshold = float(scene.meta.get("mobility_threshold", cfg.check.mobility_threshold))
+    threshold = float(scene.meta.get("mobility_threshold", cfg.check.mobility_threshold))
+    if scene.meta.get("mobility_rule") == "object" and {"moving", "object_to_world", "track_object"} <= ok:
+        # the paper appendix's rule (datagen.foreign.ReadOptions): the object's position change
+        expected = foreign.object_moving(scene.object_to_world, threshold)[scene.track_object]
+        disagree = int((scene.moving != expected).sum())
+        if disagree:
+            problems.append(f"moving disagrees with its object's position change > {threshold} "
+                            f"at {disagree} points")
+    elif {"moving", "displacement"} <= ok:
         disagree = int((scene.moving != (scene.displacement > threshold)).sum())
         if disagree:
             problems.append(f"moving disagrees with displacement > {threshold} at {disagree} points")
@@ -275,9 +305,12 @@ def check_dataset(source, cfg, split: str | None = None, progress: bool = True) 
     shards that the dataset file of a `source` folder lists but that are absent are counted
     apart (`CheckResult.missing`), not as problems of scenes."""
     problems: list[tuple[str, str, str]] = []
-    listed = shards.list_shards(source, split)
-    folder = isinstance(source, (str, Path)) and Path(source).is_dir()
-    missing = shards.missing_shards(listed) if folder else []
+    if foreign.source_kind(source) != foreign.SHARDS:  # other projects' data: its files or folders
+        listed, missing = sorted({unit.path for unit in foreign.source_units(source, split)}), []
+    else:
+        listed = shards.list_shards(source, split)
+        folder = isinstance(source, (str, Path)) and Path(source).is_dir()
+        missing = shards.missing_shards(listed) if folder else []
     count = unverified = 0
     for sample in tqdm(iter_dataset(source, split), desc="check", unit="scene", disable=not progress):
         count += 1

@@ -18,11 +18,18 @@ Per scene, for frames i = 0..T-1 (docs/FORMAT.md, "Exports"):
 Kubric's conventions: resolution [W, H]; camera poses in Blender axes (x right, y up, looking
 along -z: ours times diag(1, -1, -1)); K normalised with Blender's signs; image positions and 2D
 boxes normalised to [0,1] with raster coordinates (pixel centres at +0.5); quaternions (w,x,y,z).
+
+The folders are what Kubric's own TFDS builders (challenges/movi/) build unchanged: `movi_e.py`
+and `panning_movi_e.py`, or for scenes of the movi-f preset `movi_f.py`, whose older worker's
+conventions differ (`MOVI_F`). Those builders know an object only as one of the Google Scanned
+Objects (GSO) of their tables, so each of our assets is written as a GSO stand-in of its kind
+(`STAND_INS`), our own id kept beside it.
 """
 
 from __future__ import annotations
 
 import colorsys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +44,48 @@ from datagen.scene import Scene
 
 BLENDER_AXES = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> Blender's (right-multiplied)
 LENS = ("focal_length", "sensor_width", "field_of_view")  # meta["camera"] keys Kubric's camera has
+MOVI_F = "movi-f"  # scenes of this preset are written for movi_f.py, the others for movi_e.py
+# movi_f.py multiplies data_ranges.json's flow ranges by 512: its worker stored flow in units of
+# its 512-pixel frame. For it, the ranges are written in pixels / 512.
+MOVI_F_FLOW_UNIT = 512.0
+PROCEDURAL_BACKDROP = "procedural"  # `background` of a scene without a background image
+
+
+@dataclass(frozen=True)
+class GsoAsset:
+    """What Kubric's builders know of a GSO asset: movi_e.py's `asset_id_from_metadata` finds
+    `asset_id` by (nr_faces, category, description[:15]) of an instance's metadata; movi_f.py's
+    `get_scale_and_category` finds (scale_factor, category) by asset_id, and stores the
+    instance's `scale` times scale_factor (its older worker's scale was relative to the raw GSO
+    mesh, whose largest extent is scale_factor)."""
+
+    asset_id: str
+    nr_faces: int
+    category: str  # one of the 17 GSO categories ("None" is one)
+    description: str  # the first 15 characters of its GSO description, all the builders compare
+    scale_factor: float
+
+
+# Our assets -> the GSO asset written for each (our id is kept as `c4d_asset_id`): one of the same
+# kind and category where GSO has one; every other asset (random_urdf/*, primitive/*, the other
+# pybullet models, meshes of `assets_dir`) is a plain shape without a GSO category, written as
+# `SHAPE`, a GSO asset of category "None". Facts of the builders' tables (kubric 0ee21e2).
+STAND_INS = {
+    "pybullet/teddy": GsoAsset("Lovable_Huggable_Cuddly_Boutique_Teddy_Bear_Beige", 97684,
+                               "Stuffed Toys", "Lovable Huggabl", 0.370612),
+    "pybullet/duck": GsoAsset("BIRD_RATTLE", 17104, "Toys", "BIRD RATTLE\nThi", 0.11119),
+    "pybullet/soccerball": GsoAsset("HAMMER_BALL", 12474, "Toys", "HAMMER BALL\nThi", 0.28392),
+    "pybullet/domino": GsoAsset("FRUIT_VEGGIE_DOMINO_GRADIENT", 12556, "Toys", "FRUIT & VEGGIE ",
+                                0.347707),
+    "pybullet/lego": GsoAsset("Android_Lego", 14214, "Legos", "Android Lego", 0.106349),
+    "pybullet/jenga": GsoAsset("2_of_Jenga_Classic_Game", 8922, "Consumer Goods",
+                               "2 of Jenga Clas", 0.292098),
+    "pybullet/mug": GsoAsset("ACE_Coffee_Mug_Kristen_16_oz_cup", 11224, "Consumer Goods",
+                             "ACE Coffee Mug,", 0.134936),
+    "pybullet/tray": GsoAsset("Threshold_Tray_Rectangle_Porcelain", 2740, "None",
+                              "Threshold Tray,", 0.314468),
+}
+SHAPE = GsoAsset("Closetmaid_Premium_Fabric_Cube_Red", 12158, "None", "Closetmaid Prem", 0.32167)
 
 
 def euclidean_range(depth: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
@@ -64,7 +113,10 @@ def visible_pixels(segmentation: np.ndarray, order: np.ndarray) -> np.ndarray:
 def encode_flow(flow: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
     """Kubric's 16-bit flow frames: uint16 (T,H,W,3) of (flow - min) * 65535 / (max - min)
     truncated, the third channel 0, and {"min", "max"} over the whole video (T,H,W,2) and both
-    channels (a constant flow is stored as 0 with min == max)."""
+    channels (a constant flow is stored as 0 with min == max). Computed in float64: in float32
+    the scaled value can round below an integer and truncate one code low, to decode more than
+    one step below the flow."""
+    flow = np.asarray(flow, np.float64)
     low, high = np.min(flow), np.max(flow)
     scaled = ((flow - low) * 65535 / (high - low) if high > low else np.zeros_like(flow))
     encoded = np.zeros(flow.shape[:-1] + (3,), np.uint16)
@@ -116,6 +168,23 @@ def camera_info(scene: Scene) -> dict[str, Any]:
             "K": normalised_intrinsics(scene.intrinsics[0], w, h), "R": pose[-1]}
 
 
+def for_movi_f(scene: Scene) -> bool:
+    """Whether `scene` is written for movi_f.py (a scene of the movi-f preset) rather than for
+    movi_e.py and panning_movi_e.py."""
+    return scene.meta.get("preset") == MOVI_F
+
+
+def gso_keys(obj: dict[str, Any], movi_f: bool) -> dict[str, Any]:
+    """The keys of an instance that name its asset for Kubric's builders: the GSO stand-in's
+    asset_id, nr_faces, category and description (`STAND_INS`), our asset id as c4d_asset_id,
+    and `scale` (our largest extent, scene units; for movi_f.py divided by the stand-in's
+    scale_factor, which the builder multiplies back)."""
+    gso = STAND_INS.get(obj["asset_id"], SHAPE)
+    return {"asset_id": gso.asset_id, "c4d_asset_id": obj["asset_id"], "nr_faces": gso.nr_faces,
+            "category": gso.category, "description": gso.description,
+            "scale": obj["scale"] / gso.scale_factor if movi_f else obj["scale"]}
+
+
 def instance_info(scene: Scene, order: np.ndarray, visibility: np.ndarray) -> list[dict[str, Any]]:
     """metadata.json's `instances`, one per object of `order` (Kubric's order)."""
     h, w = scene.image_size
@@ -127,7 +196,7 @@ def instance_info(scene: Scene, order: np.ndarray, visibility: np.ndarray) -> li
         frames = np.flatnonzero(np.isfinite(box).all(axis=1))
         pose = scene.object_to_world[k].astype(np.float64)
         result.append({
-            **obj, "is_dynamic": bool(inst["is_dynamic"][k]),
+            **obj, **gso_keys(obj, for_movi_f(scene)), "is_dynamic": bool(inst["is_dynamic"][k]),
             "positions": pose[:, :3, 3], "quaternions": matrix_to_quat(pose[:, :3, :3]),
             "velocities": inst["velocity"][k], "angular_velocities": inst["angular_velocity"][k],
             "bboxes_3d": inst["bbox_3d"][k],
@@ -191,18 +260,24 @@ def write_scene(scene: Scene, folder: Path, name: str) -> None:
         write_png(folder / f"normal_{t:05d}.png", normal[t])
         write_png(folder / f"object_coordinates_{t:05d}.png", coordinates[t])
     meta = scene.meta
-    write_json(folder / "data_ranges.json", {"backward_flow": backward_range,
-                                             "forward_flow": forward_range})
+    movi_f = for_movi_f(scene)
+    unit = MOVI_F_FLOW_UNIT if movi_f else 1.0
+    write_json(folder / "data_ranges.json", {
+        layer: {key: value / unit for key, value in ranges.items()}
+        for layer, ranges in (("backward_flow", backward_range), ("forward_flow", forward_range))})
     # compact JSON: Python's C encoder (indented JSON is encoded in Python, 5x slower)
     write_json(folder / "events.json", {"collisions": collisions(scene, order)}, indent=None)
     write_json(folder / "metadata.json", {
-        "flags": {key: meta.get(key) for key in ("preset", "seed", "split", "scene_index",
-                                                 "config_digest", "generator", "generator_version")},
+        "flags": {**{key: meta.get(key) for key in ("preset", "seed", "split", "scene_index",
+                                                    "config_digest", "generator",
+                                                    "generator_version")},
+                  "tfds_builder": "movi_f.py" if movi_f else "movi_e.py"},
         "metadata": {"resolution": [w, h], "frame_rate": meta.get("fps"),
                      "step_rate": meta.get("physics", {}).get("step_rate"),
                      "num_frames": scene.num_frames, "seed": meta.get("seed"),
-                     "background": meta.get("background"), "num_instances": len(order),
-                     "motion_blur": meta.get("motion_blur")},
+                     "background": meta.get("background") or PROCEDURAL_BACKDROP,
+                     "num_instances": len(order), "motion_blur": meta.get("motion_blur"),
+                     **({"height": h, "width": w} if movi_f else {})},
         "camera": camera_info(scene),
         "instances": instance_info(scene, order, visible_pixels(scene.segmentation, order)),
     }, indent=None)
