@@ -90,8 +90,9 @@ def _config_kind(folder: Path) -> str:
 
 
 def _export_kind(folder: Path) -> str | None:
-    """'export-FORMAT' for a folder of `c4d export` scene folders (each holds c4d_export.json)."""
-    for record in folder.glob("*/c4d_export.json"):
+    """'export-FORMAT' for a folder of `c4d export` scene folders (each holds c4d_export.json),
+    directly or in its `scenes/` (the kubric export's layout)."""
+    for record in [*folder.glob("*/c4d_export.json"), *folder.glob("scenes/*/c4d_export.json")]:
         try:
             fmt = json.loads(record.read_text()).get("format")
         except (OSError, ValueError, AttributeError):

@@ -11,9 +11,14 @@ C4D's correspondence-guided mask, for every directed pair (t, t') of the scene g
      threshold: pixels that break the epipolar constraint are dynamic. The threshold is
      `sampson_threshold_px`, raised to `noise_sigmas` robust standard deviations of the static
      points' own distances when the flow is noisier than that; pixels whose flow leaves frame t'
-     are not judged (their flow is unreliable) unless `judge_out_of_view`;
+     are not judged (their flow is unreliable) unless `judge_out_of_view`; with
+     `forward_backward_px` > 0 and the pair (t', t) in the graph, neither are pixels whose flow
+     t -> t' and the flow t' -> t back from where it lands disagree by more than that many pixels
+     (occlusions and flow failures: estimated flow, e.g. DIS, is wrong there, and a wrong flow
+     breaks the epipolar constraint as a moving object does);
   5. the mask of frame t is the union over all pairs (t, t') of the graph (optionally only
-     those with |t - t'| <= `max_pair_offset`, for flows that fail on distant frames).
+     those with |t - t'| <= `max_pair_offset`, for flows that fail on distant frames); then, where `open_px` / `close_px` > 0, a morphological opening (specks of
+     flow noise go) and closing (holes in objects fill) with squares of that side.
 Fallbacks, listed in `MotionMasks.pair_info` and logged in one line per call (once per process
 for the same pairs with the same static-point counts: two runs on one video, as `c4d demo`'s
 C4D and GA only, compute the same masks):
@@ -69,6 +74,9 @@ class MotionMaskConfig:
     max_pair_offset: int
     noise_sigmas: float
     judge_out_of_view: bool
+    forward_backward_px: float
+    open_px: int
+    close_px: int
 
 
 @dataclass
@@ -206,6 +214,16 @@ def pair_motion_mask(flow: np.ndarray, static_xy: np.ndarray, cfg: MotionMaskCon
     return (distance > threshold) & (in_view | cfg.judge_out_of_view), info
 
 
+def forward_backward_error(flow: np.ndarray, back: np.ndarray) -> np.ndarray:
+    """Pixels (H,W) by which the flow i -> j (H,W,2) and the flow j -> i (H,W,2), sampled where
+    the first lands (bilinear, edges replicated), fail to cancel: |f_ij(x) + f_ji(x + f_ij(x))|."""
+    height, width = flow.shape[:2]
+    target = (pixel_grid(height, width) + flow).astype(np.float32)  # (H,W,2)
+    returned = cv2.remap(back.astype(np.float32), target[..., 0], target[..., 1], cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+    return np.linalg.norm(flow + returned, axis=-1)
+
+
 def _check_flows(flows: np.ndarray, pairs: Sequence[Pair], num_frames: int) -> None:
     if flows.ndim != 4 or flows.shape[-1] != 2 or flows.shape[0] != len(pairs):
         raise UserError(f"got flows of shape {flows.shape} for {len(pairs)} pairs; expected (P,H,W,2) with P = pairs")
@@ -234,11 +252,16 @@ def correspondence_motion_masks(
     """
     num_frames = track_arrays(tracks)["tracks"].shape[0]
     _check_flows(flows, pairs, num_frames)
+    index = {(int(i), int(j)): p for p, (i, j) in enumerate(pairs)}
     pair_masks, infos = [], []
     for flow, (i, j) in zip(flows, pairs):
         if cfg.max_pair_offset and abs(j - i) > cfg.max_pair_offset:
             continue
         mask, info = pair_motion_mask(flow, static_points(tracks, i, cfg), cfg)
+        if cfg.forward_backward_px > 0 and (int(j), int(i)) in index:
+            inconsistent = forward_backward_error(flow, flows[index[(int(j), int(i))]]) > cfg.forward_backward_px
+            mask &= ~inconsistent
+            info["inconsistent_fraction"] = float(inconsistent.mean())
         pair_masks.append(mask)
         infos.append({"pair": [int(i), int(j)], **info})
     fallbacks = [tuple(f["pair"]) for f in infos if f["method"] in ("all-flow", "failed")]
@@ -255,6 +278,10 @@ def correspondence_motion_masks(
     masks = np.zeros((num_frames, *flows.shape[1:3]), bool)  # (T,H,W)
     for mask, info in zip(pair_masks, infos):
         masks[info["pair"][0]] |= mask  # union over the pairs that start at frame i
+    for size, operation in ((cfg.open_px, cv2.MORPH_OPEN), (cfg.close_px, cv2.MORPH_CLOSE)):
+        if size > 0:
+            kernel = np.ones((size, size), np.uint8)
+            masks = np.stack([cv2.morphologyEx(m.astype(np.uint8), operation, kernel) > 0 for m in masks])
     _warn_frames_without_pairs([info["pair"] for info in infos], num_frames)
     return MotionMasks(masks, infos)
 

@@ -215,6 +215,17 @@ def occlusion(pixels: np.ndarray, z: np.ndarray, track_object: np.ndarray, depth
     return ~in_view | hidden | ~same_segment
 
 
+def world_motion(world: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """displacement float32 (N,T) and moving bool (N,T) of world points (N,T,3): the distance
+    each point moved since frame t-1 (t = 0: to frame 1; 0 in a one-frame video), and whether it
+    exceeds `threshold` (world units a frame; compared before the float32 cast). The mobility
+    label of our scenes (`point_tracks`) and of readers that lift tracks to the world."""
+    step = np.linalg.norm(np.diff(world, axis=1), axis=-1)  # (N,T-1)
+    displacement = np.concatenate([step[:, :1], step], axis=1) if world.shape[1] > 1 \
+        else np.zeros(world.shape[:2])
+    return displacement.astype(np.float32), displacement > threshold
+
+
 def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
                  rng: np.random.Generator, cfg, mobility_threshold: float,
                  exact_kubric: bool = False) -> Tracks:
@@ -224,7 +235,6 @@ def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
     max_sampled_fraction, depth_tolerance); `exact_kubric` samples the queries exactly as
     TAP-Vid-Kubric does (`sample_queries`)."""
     c = cfg.tracks
-    num_frames = depth.shape[0]
     poses = segment_poses(object_to_world)  # (K+1,T,4,4)
     tq, yq, xq = sample_queries(segmentation, rng, int(c.num_points), int(c.query_stride),
                                 int(c.grid_stride), float(c.max_sampled_fraction), exact_kubric)
@@ -253,17 +263,15 @@ def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
     # A query point is visible at its query frame by construction (its own pixel, depth, segment).
     occluded[np.arange(len(obj)), tq] = False
 
-    step = np.linalg.norm(np.diff(world, axis=1), axis=-1)  # (N,T-1)
-    displacement = np.concatenate([step[:, :1], step], axis=1) if num_frames > 1 \
-        else np.zeros((len(obj), 1))
+    displacement, moving = world_motion(world, mobility_threshold)
     return Tracks(
         tracks=pixels.astype(np.float32),
         occluded=occluded,
         query_frame=tq.astype(np.int32),
         track_object=obj.astype(np.int32),
         tracks_world=world.astype(np.float32),
-        displacement=displacement.astype(np.float32),
-        moving=displacement > mobility_threshold,
+        displacement=displacement,
+        moving=moving,
     )
 
 

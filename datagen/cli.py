@@ -162,22 +162,26 @@ def claim_directory(out: Path, record: dict[str, Any], plan: ShardPlan) -> None:
 
 
 def _check_shards_match(out: Path, record: dict[str, Any], plan: ShardPlan) -> None:
-    """Refuse to resume shards in `out` whose first scene has another seed or config than
-    `record`: they would pass as complete shards of this dataset and mix two generations."""
-    digest = config_digest(record["config"])
+    """Refuse to resume shards in `out` whose first scene (its meta.json) was made by another
+    generator version, or with another seed or config than `record`: they would pass as complete
+    shards of this dataset and mix two generations."""
+    digest, version = config_digest(record["config"]), record["generator_version"]
     for shard in sorted(out.glob(f"{plan.split}-*.tar")):
         meta = first_scene_meta(shard)
-        if "seed" in meta and meta["seed"] != record["seed"]:
+        how = "rerun with the shards' settings to resume them, or choose a new --out"
+        if "generator_version" in meta and meta["generator_version"] != version:
+            made = (f"by datagen {meta['generator_version']} (this is datagen {version}, whose "
+                    "scenes differ)")
+            how = "choose a new --out to generate the dataset with this version"
+        elif "seed" in meta and meta["seed"] != record["seed"]:
             made = f"with seed {meta['seed']} (this run: seed {record['seed']})"
         elif "config_digest" in meta and meta["config_digest"] != digest:
             made = (f"with another config (config_digest {meta['config_digest']}, this run's "
                     f"{digest})")
         else:
             continue
-        raise UserError(
-            f"{shard} was generated {made} and {DATASET_FILE.format(split=plan.split)} is "
-            "missing; rerun with the shards' settings to resume them, or choose a new --out"
-        )
+        raise UserError(f"{shard} was generated {made} and "
+                        f"{DATASET_FILE.format(split=plan.split)} is missing; {how}")
 
 
 # --- scene generation, in this process or in spawned workers ------------------------------------

@@ -19,7 +19,7 @@ def scene():
 
 def test_every_estimator_returns_one_flow_per_pair(scene):
     pairs = [(0, 1), (3, 2), (1, 5)]
-    for spec in ("dis", "dis:fast", "gt"):
+    for spec in ("dis", "dis:fast", "dis:medium@2x", "gt"):
         flow = build_flow(spec, scene=scene).flow(scene.rgb, pairs)
         assert flow.shape == (3, 48, 64, 2) and flow.dtype == np.float32
         assert np.isfinite(flow).all()
@@ -28,7 +28,8 @@ def test_every_estimator_returns_one_flow_per_pair(scene):
 @pytest.mark.parametrize(
     "spec, message",
     [("farneback", "unknown flow"), ("dis:slow", "unknown DIS preset"), ("gt", "needs a datagen scene"),
-     ("raft", "needs weights"), ("raft:/no/such/raft.pth", "do not exist")],
+     ("raft", "needs weights"), ("raft:/no/such/raft.pth", "do not exist"),
+     ("dis:medium@0x", "1x to 8x"), ("dis:medium@2", "1x to 8x"), ("dis:slow@2x", "unknown DIS preset")],
 )
 def test_bad_specs_are_user_errors(spec, message):
     with pytest.raises(UserError, match=message):
@@ -86,10 +87,11 @@ def test_dis_recovers_a_known_shift():
     frame0 = big[8:72, 8:104]  # (64,96)
     frame1 = big[8 - dy : 72 - dy, 8 - dx : 104 - dx]  # content moves by (+dx, +dy)
     frames = np.repeat(np.stack([frame0, frame1])[..., None], 3, -1).astype(np.uint8)
-    flow = build_flow("dis").flow(frames, [(0, 1), (1, 0)])
     inner = (slice(12, -12), slice(12, -12))
-    np.testing.assert_allclose(np.median(flow[0][inner].reshape(-1, 2), 0), [dx, dy], atol=0.1)
-    np.testing.assert_allclose(np.median(flow[1][inner].reshape(-1, 2), 0), [-dx, -dy], atol=0.1)
+    for spec in ("dis", "dis:medium@2x"):  # on upsampled frames: the same shift in frame pixels
+        flow = build_flow(spec).flow(frames, [(0, 1), (1, 0)])
+        np.testing.assert_allclose(np.median(flow[0][inner].reshape(-1, 2), 0), [dx, dy], atol=0.1)
+        np.testing.assert_allclose(np.median(flow[1][inner].reshape(-1, 2), 0), [-dx, -dy], atol=0.1)
 
 
 def test_ground_truth_flow_matches_a_generated_movi_e_scene():

@@ -168,3 +168,40 @@ def test_flow_leaving_the_frame_is_not_judged_and_noise_raises_the_threshold(sce
     noisy = flows[0] + np.random.default_rng(1).normal(0, 1.0, flows[0].shape)
     _, info = pair_motion_mask(noisy, static, MotionMaskConfig(noise_sigmas=4.0))
     assert info["threshold_px"] == pytest.approx(4.0 * info["sigma_px"]) and info["threshold_px"] > 1.0
+
+
+def test_forward_backward_check_leaves_broken_flow_unjudged(scene, graph):
+    """A patch of nonsense flow in one direction breaks the epipolar constraint: the union marks it
+    dynamic, the forward-backward check (the pair's reverse flow does not bring it back) does not."""
+    from c4d_pipeline.motion_mask import forward_backward_error
+
+    pairs, flows = graph
+    tracks = oracle_tracks(scene)
+    truth = ground_truth_motion_masks(scene)
+    exact = correspondence_motion_masks(tracks, flows, pairs, MotionMaskConfig(forward_backward_px=1.0))
+    assert mask_iou(exact.masks, truth)["iou"] > 0.9, "exact flow is consistent: nothing is dropped"
+    p = pairs.index(next(pq for pq in pairs if (pq[1], pq[0]) in pairs))
+    reverse = pairs.index((pairs[p][1], pairs[p][0]))
+    assert np.median(forward_backward_error(flows[p], flows[reverse])) < 0.05
+    broken = flows.copy()
+    broken[p, 30:40, 5:15] += (6.0, -5.0)  # a flow failure on static floor pixels
+    static_floor = ~truth[pairs[p][0], 30:40, 5:15]
+    union = correspondence_motion_masks(tracks, broken, pairs, MotionMaskConfig())
+    checked = correspondence_motion_masks(tracks, broken, pairs, MotionMaskConfig(forward_backward_px=1.0))
+    assert union.masks[pairs[p][0], 30:40, 5:15][static_floor].mean() > 0.9
+    assert not checked.masks[pairs[p][0], 30:40, 5:15][static_floor].any()
+    assert any("inconsistent_fraction" in info for info in checked.pair_info)
+    assert checked.masks[truth].mean() > 0.9, "the moving box stays"
+
+
+def test_opening_removes_specks_and_closing_fills_holes(scene, graph):
+    from dataclasses import replace
+
+    pairs, flows = graph
+    tracks, truth = oracle_tracks(scene), ground_truth_motion_masks(scene)
+    speck = flows.copy()
+    speck[:, 35, 8] += (5.0, -4.0)  # one pixel of nonsense flow on the floor, in every pair
+    plain = correspondence_motion_masks(tracks, speck, pairs, MotionMaskConfig()).masks
+    cleaned = correspondence_motion_masks(tracks, speck, pairs, replace(MotionMaskConfig(), open_px=3, close_px=3)).masks
+    assert plain[:, 35, 8].any() and not cleaned[:, 35, 8].any()
+    assert mask_iou(cleaned, truth)["iou"] > 0.9

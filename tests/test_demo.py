@@ -15,7 +15,7 @@ def demo_out(tmp_path_factory):
 
 
 def test_every_step_ran_and_the_summary_has_every_number(demo_out):
-    for step in ("data", "train", "eval", "reconstruct", "pictures"):
+    for step in ("data", "train", "eval", "recon-data", "reconstruct", "pictures"):
         assert json.loads((demo_out / step / "done.json").read_text())["seconds"] >= 0
     summary = (demo_out / "summary.md").read_text()
     assert "DynPT (trained here)" in summary and "zero motion, all static" in summary
@@ -29,13 +29,25 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
     assert sorted(p.name for p in readme.glob("*.png")) == [
         "dataset_sheet.png", "tracks.png", "trajectory.png"]
     assert "trained 60 steps (overrides: `loss.mobility_pos_weight=1.0`)" in summary
-    assert "the track overlay and the reconstruction report show" in summary
+    assert "the track overlay and the reconstruction report show recon-data/movi-e #0" in summary
+    # the reconstructed val scene was rendered again at recon.resolution, and reconstructed there
+    from datagen.shards import read_scenes
+
+    scene = next(iter(read_scenes(demo_out / "recon-data" / "movi-e")))
+    val = next(iter(read_scenes(demo_out / "data" / "val" / "movi-e")))
+    assert scene.image_size == (64, 64) and val.image_size == (48, 48)
+    assert (scene.cam_to_world == val.cam_to_world).all(), "the same scene at another size"
+    assert "rendered again at 64x64" in summary and "for marking every pixel dynamic" in summary
+    report = json.loads((demo_out / "pictures" / "reconstruction" / "summary.json").read_text())
+    assert (demo_out / "pictures" / "reconstruction" / "mask_errors.png").exists()
+    assert report["mask_vs_truth"]["iou"] == pytest.approx(
+        json.loads((demo_out / "reconstruct" / "metrics.json").read_text())["scene-000"]["C4D"]["mask"]["iou"])
 
 
 def test_rerun_resumes_and_skips_every_step(demo_out, caplog):
     caplog.set_level("INFO", logger="c4d.demo")
     assert main(["demo", "--quick", "--out", str(demo_out)]) == 0
-    assert caplog.text.count("done before, skipped") == 5
+    assert caplog.text.count("done before, skipped") == 6
 
 
 def test_another_config_into_the_same_folder_is_refused(demo_out, capsys):

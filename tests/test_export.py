@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import shutil
 import signal
 import subprocess
 import sys
@@ -147,11 +148,15 @@ def kubric_project(point, position, quaternion, k_normalised):
 def test_kubric_export_is_kubric_s_worker_layout_of_our_scenes(full, scenes, tmp_path):
     out = tmp_path / "kubric"
     assert export("kubric", full, out)[0] == 0
-    # nothing else in OUT but the marker of c4d_core.ownership (a file: readers list folders)
-    assert sorted(p.name for p in out.iterdir()) == [".c4d-output.json", *sorted(scenes)]
+    # OUT: the marker of c4d_core.ownership and scenes/, the data path of Kubric's builders, which
+    # read every entry there as a scene folder (is_complete_dir) and sort them as integers (test)
+    assert sorted(p.name for p in out.iterdir()) == [".c4d-output.json", "scenes"]
+    entries = list((out / "scenes").iterdir())
+    assert all(p.is_dir() for p in entries) and sorted(p.name for p in entries) == sorted(scenes)
+    assert sorted(int(p.name) for p in entries) == sorted(int(name) for name in scenes)
     h, w = SIZE
     for name, s in scenes.items():
-        folder = out / name
+        folder = out / "scenes" / name
         names = [p.name for p in folder.iterdir()]
         # movi_e.py's is_complete_dir: the three JSON files, and as many frames of each layer as rgba
         assert {"data_ranges.json", "metadata.json", "events.json"} <= set(names)
@@ -251,8 +256,8 @@ def test_a_movi_f_scene_is_written_in_movi_f_py_s_conventions(blurred, tmp_path)
     out = tmp_path / "kubric"
     assert export("kubric", blurred, out)[0] == 0
     scene = next(iter(read_scenes(blurred)))
-    meta = json.loads((out / "00000000" / "metadata.json").read_text())
-    ranges = json.loads((out / "00000000" / "data_ranges.json").read_text())
+    meta = json.loads((out / "scenes" / "00000000" / "metadata.json").read_text())
+    ranges = json.loads((out / "scenes" / "00000000" / "data_ranges.json").read_text())
     h, w = SIZE
     assert meta["flags"]["tfds_builder"] == "movi_f.py"
     assert (meta["metadata"]["height"], meta["metadata"]["width"]) == (h, w)
@@ -331,19 +336,39 @@ def test_a_killed_export_resumes_into_the_same_bytes(full, tmp_path):
     out = tmp_path / "killed"
     proc = subprocess.Popen([sys.executable, "-m", "c4d", "export", "kubric", str(full), str(out)],
                             env=ENV, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    first = out / "00000000"
+    first = out / "scenes" / "00000000"
     end = time.monotonic() + 120
     while not first.is_dir() and proc.poll() is None and time.monotonic() < end:
         time.sleep(0.002)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    done = sorted(p.name for p in out.iterdir() if not p.name.endswith(".partial"))
-    assert first.is_dir() and done != sorted(p.name for p in reference.iterdir()), \
+    done = sorted(p.name for p in first.parent.iterdir() if not p.name.endswith(".partial"))
+    assert first.is_dir() and done != sorted(p.name for p in (reference / "scenes").iterdir()), \
         f"the export was not killed between scenes: {done}"
     inode = first.stat().st_ino
     code = main(["export", "kubric", str(full), str(out)])
     assert code == 0 and first.stat().st_ino == inode  # the finished scene was kept, not redone
     assert files_of(out) == files_of(reference)  # the rest completed, byte for byte
+    assert not [p for p in out.rglob("*.partial")]  # nothing but scenes where the builders read
+
+
+def test_a_kubric_export_in_the_old_layout_or_with_other_entries_is_refused(full, tmp_path, capsys):
+    """OUT holds the marker and scenes/ only: scene folders of an earlier export in OUT itself
+    are refused with how to move them; any other entry beside scenes/ is refused, naming it."""
+    out = tmp_path / "kubric"
+    assert export("kubric", full, out)[0] == 0
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    for scene in (old / "scenes").iterdir():
+        scene.rename(old / scene.name)
+    (old / "scenes").rmdir()
+    capsys.readouterr()
+    code, err = export("kubric", full, old, capsys)
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "00000000 of an earlier kubric export" in err and f"{old / 'scenes'}" in err, err
+    (out / "notes").mkdir()
+    code, err = export("kubric", full, out, capsys)
+    assert code == 2 and len(err.splitlines()) == 1 and "notes, which no kubric export" in err, err
 
 
 def test_an_export_refuses_foreign_folders_missing_layers_and_unknown_formats(full, plain, tmp_path, capsys):

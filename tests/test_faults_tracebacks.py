@@ -252,8 +252,9 @@ def test_a_disk_full_during_an_export_is_one_line_naming_the_file(tmp_path, capf
             line = assert_one_line_error(code, err, "no space left", str(out))
             assert "libpng" not in err and Path(line.split(" while writing ")[1].split(";")[0]).suffix
             assert (disk / "kept.txt").read_text() == "kept" and no_temporaries(disk)
-            for scene in (p for p in out.glob("*") if p.is_dir()):  # finished: as in the reference
-                assert files_of(scene) == files_of(reference / scene.name), scene
+            for record in out.rglob("c4d_export.json"):  # finished scenes: as in the reference
+                scene = record.parent.relative_to(out)
+                assert files_of(out / scene) == files_of(reference / scene), scene
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,8 @@ from c4d.cli import main
 from c4d_core.errors import UserError
 from datagen import read_scenes
 from datagen.annotate import tapvid_kubric_tracks
-from datagen.foreign import ReadOptions, Unit, cotracker_kubric, kubric_worker, object_moving
+from datagen.foreign import (ReadOptions, Unit, cotracker_kubric, kubric_worker, object_moving,
+                             source_kind)
 
 SIZE = (48, 64)  # H, W: not square, so an axis swap shows
 FRAMES = 8
@@ -60,14 +61,22 @@ def in_kubric_order(scene, order: np.ndarray):
                                objects=[scene.objects[k] for k in order])
 
 
-def test_detect_and_units(exported):
+def test_detect_and_units(exported, tmp_path):
+    """A source is the export's OUT (its scene folders in OUT/scenes/), OUT/scenes itself, one
+    scene folder, or a folder of scene folders as Kubric's worker jobs leave them (no marker)."""
     _, out = exported
-    assert kubric_worker.detect(out) and kubric_worker.detect(out / "00000001")
-    assert not cotracker_kubric.detect(out) and not kubric_worker.detect(out / "nothing")
-    units = kubric_worker.units(out)
-    assert [(u.kind, Path(u.path).name, u.index) for u in units] == \
-        [("kubric-worker", "00000000", 0), ("kubric-worker", "00000001", 1)]
-    assert [Path(u.path).name for u in kubric_worker.units(out / "00000001")] == ["00000001"]
+    job = Path(shutil.copytree(out / "scenes", tmp_path / "job"))  # Kubric's own job folder
+    for source in (out, out / "scenes", job, out / "scenes" / "00000001"):
+        assert kubric_worker.detect(source) and not cotracker_kubric.detect(source), source
+    assert not kubric_worker.detect(out / "nothing")
+    assert source_kind(out) == source_kind(out / "scenes") == source_kind(job) == "kubric-worker"
+    for source in (out, out / "scenes", job):
+        units = kubric_worker.units(source)
+        assert [(u.kind, Path(u.path).name, u.index) for u in units] == \
+            [("kubric-worker", "00000000", 0), ("kubric-worker", "00000001", 1)], source
+    assert kubric_worker.scene_root(out) == out / "scenes" and kubric_worker.scene_root(job) == job
+    assert [Path(u.path).name for u in kubric_worker.units(out / "scenes" / "00000001")] == \
+        ["00000001"]
 
 
 def test_our_scenes_through_the_kubric_export_read_back_equal(exported):
@@ -150,7 +159,7 @@ def test_a_movi_f_scene_written_for_movi_f_py_reads_back_in_our_units(tmp_path):
                  "layers.normal=true", "layers.object_coordinates=true", "layers.events=true"]) == 0
     assert main(["export", "kubric", str(data), str(out)]) == 0
     [s], [r] = list(read_scenes(data)), read_all(out)
-    ranges = json.loads((out / "00000000" / "data_ranges.json").read_text())
+    ranges = json.loads((out / "scenes" / "00000000" / "data_ranges.json").read_text())
     for ours_flow, theirs, name in ((s.flow_fwd, r.flow_fwd, "forward_flow"),
                                     (s.flow_bwd, r.flow_bwd, "backward_flow")):
         step = (ranges[name]["max"] - ranges[name]["min"]) * 512 / 65535
@@ -168,7 +177,7 @@ def test_a_movi_f_scene_written_for_movi_f_py_reads_back_in_our_units(tmp_path):
 @pytest.fixture
 def scene_copy(exported, tmp_path) -> Path:
     _, out = exported
-    return Path(shutil.copytree(out / "00000000", tmp_path / "00000000"))
+    return Path(shutil.copytree(out / "scenes" / "00000000", tmp_path / "00000000"))
 
 
 def read(folder: Path):

@@ -20,14 +20,16 @@ from datagen import shards
 from datagen.scene import Scene
 
 
-def write_reconstruction(scene: Scene, out: Path) -> Path:
-    """A reconstruction directory written by `c4d run`'s writer, holding the scene's ground truth."""
+def write_reconstruction(scene: Scene, out: Path, masks: np.ndarray | None = None) -> Path:
+    """A reconstruction directory written by `c4d run`'s writer, holding the scene's ground truth
+    (or the motion `masks` (T,H,W) given)."""
     points = np.stack([geometry.unproject_depth_map(d, k, p) for d, k, p in
                        zip(scene.depth, scene.intrinsics, scene.cam_to_world)]).astype(np.float32)
     queries = np.concatenate([scene.query_frame[:, None],
                               scene.tracks[np.arange(scene.num_tracks), scene.query_frame]], -1)  # (N,3)
     rec = outputs.Reconstruction(
-        frames=scene.rgb, depth=scene.depth, masks=ground_truth_motion_masks(scene),
+        frames=scene.rgb, depth=scene.depth,
+        masks=ground_truth_motion_masks(scene) if masks is None else masks,
         cam_to_world=scene.cam_to_world, intrinsics=scene.intrinsics, points=points,
         confidence=np.ones(points.shape[:3], np.float32),
         tracks_2d={"tracks": scene.tracks.transpose(1, 0, 2), "visible": ~scene.occluded.T,
@@ -126,3 +128,44 @@ def test_report_writes_videos_plots_and_a_page(tmp_path, recon_dir, box_scene):
     assert "Reconstruction of " in page and "scene 0" in page  # the title names the scene, not a path
     cells = re.findall(r"<td>(.*?)</td>", page)
     assert cells and not any("{" in c or "&#x27;" in c for c in cells), "formatted, not dict reprs"
+
+
+def test_mask_errors_picture_shows_hits_false_alarms_and_misses_in_the_legend_colours(tmp_path, box_scene):
+    """mask_errors.png paints each frame's true positives, false positives and false negatives in
+    the key's colours, one pixel block per mask pixel, and its counts give the IoU that
+    `c4d eval-recon` computes."""
+    from c4d_pipeline.eval_metrics import mask_iou
+
+    truth = ground_truth_motion_masks(box_scene)  # (T,H,W)
+    assert truth.any()
+    predicted = np.roll(truth, 3, axis=2)  # shifted right: misses on the left, false alarms on the right
+    predicted[:, :6, :10] = True  # and a false block in a corner
+    recon = write_reconstruction(box_scene, tmp_path / "recon", masks=predicted)
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    with shards.ShardWriter(gt_dir / "test-000000.tar") as writer:
+        writer.write(shards.encode_scene(box_scene, shards.scene_key("test", 0)))
+    out = tmp_path / "report"
+    assert main(["inspect", str(recon), "--out", str(out), "--gt", str(gt_dir), "--no-progress",
+                 "flythrough.min_views=4", "flythrough.views_per_frame=1"]) == 0
+    summary = json.loads((out / "summary.json").read_text())["mask_vs_truth"]
+    expected = {"true_positive": int((predicted & truth).sum()), "false_positive": int((predicted & ~truth).sum()),
+                "false_negative": int((~predicted & truth).sum())}
+    assert {k: summary[k] for k in expected} == expected and min(expected.values()) > 0
+    assert summary["iou"] == pytest.approx(mask_iou(predicted, truth)["iou"])
+    assert summary["iou"] == pytest.approx(expected["true_positive"] / sum(expected.values()))
+    assert summary["dynamic_fraction"] == pytest.approx(truth.mean())
+
+    picture = cv2.cvtColor(cv2.imread(str(out / "mask_errors.png")), cv2.COLOR_BGR2RGB)
+    body, key = picture[:-26], picture[-26:]  # the colour key is the bottom strip
+    factor = recon_report.draw.display_scale(box_scene.image_size[0], 192 // 2)
+    legend = np.zeros(body.shape[:2], bool)
+    for name, color in recon_report.MASK_ERROR_COLORS.items():
+        painted = (body == color).all(-1)
+        assert painted.sum() == factor**2 * expected[name.replace(" ", "_")], name
+        assert (key == color).all(-1).any(), f"{name} is in the key"
+        legend |= painted
+    others = body[~legend]
+    assert (others.max(-1) == others.min(-1)).all(), "everything else is grey"
+    page = (out / "index.html").read_text()
+    assert "mask_errors.png" in page and "false negative" in page

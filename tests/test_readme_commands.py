@@ -14,7 +14,9 @@ FILE` line runs in bash. The documented mapping from "as written" to "at toy siz
 - placeholders for the user's own files (`_placeholders`): `video.mp4` is the first val scene as
   a video, a DUSt3R checkpoint is a tiny official-layout network whose points lie in front of the
   camera (`test_c4d_run.tiny_network`; a few steps of `c4d pretrain-pointmaps` do not give one),
-  TAP-Vid pickles are toy ones, `data.sources=[...]` is the first train set, CoTracker3's
+  TAP-Vid pickles are toy ones, Kubric's TFDS records (`tfds/NAME/CONFIG/VERSION:SPLIT`) are
+  records of the first two toy movi-e-64 scenes written from the format's facts
+  (tests/foreign_writers.py), `data.sources=[...]` is the first train set, CoTracker3's
   released file (`cotracker3:weights/scaled_offline.pth`) is one in its released layout and size
   with random weights (tests/cotracker3_layout.py);
 - `[a|b]` optional groups are taken with their first alternative;
@@ -89,6 +91,9 @@ NOT_RUN = [
     (r"^git ", "changes the clone itself (a worktree of an old commit, for bench_threads.py --before)"),
     (r"\$", "needs shell variables: a loop's, a line's above (not run) or a cluster's ($NODE_RANK)"),
     (r"data256/", "its input is made by a shell loop above (not run)"),
+    (r"--protocol c4d-paper", "the paper's protocol fixes 256 tracks at 256x256 on 24-frame videos, "
+     "which the toy sizes here contradict; tests/test_foreign_tfds.py and "
+     "tests/test_eval_protocol.py run it on records written from the format's facts"),
 ]
 
 
@@ -148,8 +153,12 @@ def scene_folders(out: Path) -> list[Path]:
 
 
 def kubric_written(ran: Ran) -> None:
-    """One Kubric worker folder per scene, with the layers and JSON files the README names."""
-    for scene in scene_folders(ran.folder / _positional(ran.line, 2)):
+    """OUT/scenes/ holding one Kubric worker folder per scene and nothing else (the builders' data
+    path), with the layers and JSON files the README names; OUT holds it and the marker."""
+    out = ran.folder / _positional(ran.line, 2)
+    assert sorted(p.name for p in out.iterdir()) == [".c4d-output.json", "scenes"], list(out.iterdir())
+    assert all(p.is_dir() for p in (out / "scenes").iterdir())
+    for scene in scene_folders(out / "scenes"):
         _files(scene, "metadata.json", "events.json", "data_ranges.json", "rgba_00000.png",
                "segmentation_00000.png", "forward_flow_00000.png", "normal_00000.png",
                "object_coordinates_00000.png")
@@ -335,6 +344,16 @@ def _placeholders(folder: Path, line: str) -> None:
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
             torch.save({"model": tiny_network().state_dict(), "args": argparse.Namespace(model=ARGS)},
                        folder / name)
+    toy = folder / "data" / "movi-e-64"
+    for records in re.finditer(r"\btfds/(\w+)/([\w.]+)/([\w.]+):(\w+)", line):
+        name, config, version, split = records.groups()
+        if not (folder / records[0].partition(":")[0]).exists() and list(toy.glob("*.tar")):
+            from datagen.shards import read_scenes
+            from tests.foreign_writers import write_tfds_movi
+
+            scenes = [scene for scene, _ in zip(read_scenes(toy), range(2))]
+            write_tfds_movi(folder / "tfds", scenes, name, config, split, num_files=1,
+                            version=version)
     val = folder / "data" / "val"
     if not (folder / "video.mp4").exists() and list(val.glob("*.tar")):
         from datagen.shards import read_scenes

@@ -3,7 +3,9 @@
 Reads what is there with `c4d_pipeline.outputs.read_reconstruction(path, strict=False)`, which
 lists what is missing or inconsistent, and writes into OUT:
 `overview.webm` (frames with tracks | depth | motion mask), `depth.webm`, `masks.webm`,
-`trajectory.png` (with the aligned ground truth when given), `flythrough.webm` (the 4D point
+`trajectory.png` (with the aligned ground truth when given), `mask_errors.png` (with the ground
+truth: each frame's motion mask against the true dynamic pixels, true positives, false positives
+and false negatives in the colours of `MASK_ERROR_COLORS`), `flythrough.webm` (the 4D point
 cloud: static background once plus each frame's moving points, seen from an orbiting virtual
 camera, rendered by `point_render`), `ply.png` (scene.ply read back with trimesh and rendered,
 with a title and the world axes), `summary.json` and `index.html`.
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from c4d.inspect import html, plots, point_render
@@ -26,6 +29,11 @@ from c4d_pipeline.outputs import Reconstruction, read_reconstruction
 
 AXIS_COLORS = ((230, 40, 40), (40, 170, 40), (40, 90, 235))  # RGB of the world x, y, z axes in ply.png
 OBJECTIVES = ("ga", "cma", "cts", "pts")  # C4D's objectives, as report.json's loss curves name them
+# RGB of mask_errors.png's classes (the rest of a tile is the frame in dimmed grey, r = g = b, so no
+# pixel there can take one of these colours): found moving, wrongly marked, missed.
+MASK_ERROR_COLORS = {"true positive": (40, 200, 40), "false positive": (255, 50, 40),
+                     "false negative": (40, 120, 255)}
+MASK_SHEET_COLUMNS = 6  # frames per row of mask_errors.png
 
 
 # --------------------------------------------------------------------------------------------
@@ -161,6 +169,61 @@ def ply_picture(recon: Reconstruction, cfg) -> np.ndarray | None:
     return np.concatenate([draw.title_strip(size, title), image])
 
 
+def mask_error_tile(frame: np.ndarray, predicted: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, dict]:
+    """One frame's mask against the truth: the frame (H,W,3) in dimmed grey with the true
+    positives, false positives and false negatives (bool (H,W) masks, True = dynamic) painted in
+    `MASK_ERROR_COLORS`, and those three pixel counts."""
+    grey = (0.3 * frame[..., 0] + 0.59 * frame[..., 1] + 0.11 * frame[..., 2]) * 0.6 + 40
+    tile = np.repeat(grey.astype(np.uint8)[..., None], 3, axis=-1)
+    classes = {"true positive": predicted & truth, "false positive": predicted & ~truth,
+               "false negative": ~predicted & truth}
+    for name, where in classes.items():
+        tile[where] = MASK_ERROR_COLORS[name]
+    return tile, {name: int(where.sum()) for name, where in classes.items()}
+
+
+def mask_errors(recon: Reconstruction, scene, cfg) -> tuple[np.ndarray, dict] | None:
+    """mask_errors.png: every reconstructed frame's motion mask against the true dynamic pixels
+    of `scene` (`ground_truth_motion_masks`, the frames `c4d eval-recon` compares, the mask
+    resized to the scene's size by nearest neighbour as there), one tile per frame under a strip
+    naming the frame and its IoU, `MASK_SHEET_COLUMNS` to a row, a title with the IoU pooled over
+    the frames and the share of dynamic pixels (what marking every pixel dynamic scores), and a
+    colour key. Returns the picture uint8 and the counts {iou, true_positive, false_positive,
+    false_negative, dynamic_fraction, per_frame: [...]}, or None without masks, frames or the
+    scene's labels."""
+    from c4d_pipeline.ground_truth import ground_truth_motion_masks
+
+    if recon.masks is None or scene.depth is None or scene.segmentation is None or scene.object_to_world is None:
+        return None
+    indices, _ = scene_frame_indices(recon, scene.num_frames)
+    truth = ground_truth_motion_masks(scene)[indices]  # (T,H,W) at the scene's size
+    height, width = truth.shape[1:]
+    predicted = np.stack([cv2.resize(m.astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST)
+                          for m in recon.masks]).astype(bool)
+    frames = scene.rgb[indices]
+    factor = draw.display_scale(height, cfg.min_panel_height // 2)
+    tiles, per_frame = [], []
+    for t, (frame, pred, true) in enumerate(zip(frames, predicted, truth)):
+        tile, counts = mask_error_tile(frame, pred, true)
+        union = sum(counts.values())
+        iou = counts["true positive"] / union if union else 1.0
+        per_frame.append({"frame": int(indices[t]), "iou": iou, **{k.replace(" ", "_"): v for k, v in counts.items()}})
+        tile = draw.upscale(tile, factor)
+        tiles.append(np.concatenate([draw.title_strip(tile.shape[1], f"frame {indices[t]}: IoU {iou:.2f}", 20), tile]))
+    blank = np.full_like(tiles[0], 255)
+    tiles += [blank] * (-len(tiles) % min(MASK_SHEET_COLUMNS, len(tiles)))
+    sheet = draw.contact_sheet(tiles, columns=min(MASK_SHEET_COLUMNS, len(tiles)))
+    totals = {key: sum(f[key] for f in per_frame) for key in ("true_positive", "false_positive", "false_negative")}
+    union = sum(totals.values())
+    result = {"iou": totals["true_positive"] / union if union else 1.0, **totals,
+              "dynamic_fraction": float(truth.mean()), "per_frame": per_frame}
+    title = (f"motion mask vs true dynamic pixels: IoU {result['iou']:.3f} over {len(per_frame)} frames; "
+             f"every pixel dynamic would score {result['dynamic_fraction']:.3f}")
+    keys = draw.key_strip(sheet.shape[1], {f"{name} ({totals[name.replace(' ', '_')]} px)": color
+                                           for name, color in MASK_ERROR_COLORS.items()})
+    return np.concatenate([draw.title_strip(sheet.shape[1], title), sheet, keys]), result
+
+
 def method_name(report: dict) -> str:
     """The method a reconstruction ran, by the objectives whose losses report.json records:
     "C4D" (all of them, or when none is recorded: `c4d run` runs C4D), "GA only", or the
@@ -245,6 +308,16 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
         written["trajectory"] = plots.trajectory_plot(
             out / "trajectory.png", estimated[:, :3, 3], method,
             None if truth is None else truth[:, :3, 3], title, unit, others)
+    mask_check = None
+    if gt_scene is not None:  # checked to be the reconstructed scene by the caller (`c4d inspect`)
+        try:
+            drawn = mask_errors(recon, gt_scene, cfg)
+        except UserError as exc:
+            drawn = None
+            recon.problems.append(f"mask errors not drawn: {exc}")
+        if drawn is not None:
+            written["mask_errors"] = write_image(out / "mask_errors.png", drawn[0])
+            mask_check = drawn[1]
     flythrough = flythrough_frames(recon, cfg.flythrough)
     if flythrough is not None:
         written["flythrough"] = write_video(out / f"flythrough{video_ext}", flythrough, fps)
@@ -262,6 +335,8 @@ def build_recon_report(path: str | Path, out: str | Path, cfg, gt_scene=None, gt
         "ply_points": None if recon.ply_points is None else int(len(recon.ply_points)),
         "pose_errors": pose_errors,
         **({"pose_errors_compared": other_errors} if other_errors else {}),
+        **({"mask_vs_truth": {k: v for k, v in mask_check.items() if k != "per_frame"}}
+           if mask_check is not None else {}),
         "problems": recon.problems,
         "files": {k: str(v) for k, v in written.items()},
     }
@@ -290,8 +365,12 @@ def _write_page(out: Path, recon: Reconstruction, summary: dict, written: dict[s
                "with the world axes.",
         "depth": "Depth (near red, far blue).",
         "masks": "Motion masks (red = dynamic).",
+        "mask_errors": "Each frame's motion mask against the true dynamic pixels (surface points "
+                       "that moved since the previous frame): green = found (true positive), red "
+                       "= marked dynamic but static (false positive), blue = moving but missed "
+                       "(false negative); the rest is the frame in grey.",
     }
-    for name in ("overview", "flythrough", "trajectory", "ply", "depth", "masks"):
+    for name in ("overview", "mask_errors", "flythrough", "trajectory", "ply", "depth", "masks"):
         if name in written:
             fragments.append(html.heading(name))
             show = html.image if written[name].suffix == ".png" else html.video

@@ -1,13 +1,17 @@
 """What every export shares: the scenes of a dataset, the layers a format needs, the output's
 identity, and the resumable per-scene loop.
 
-A folder format (kubric, cotracker) writes one sub-folder per scene, named by the scene index
-(`00000042`, as Kubric's job folders are integers). Each is written whole into `NAME.partial`
-(`c4d_core.files.staged_folder`) and renamed when complete, so a folder `NAME` is always a finished
-scene; the first file of each is `c4d_export.json` (`RECORD`): the format and the dataset it came
-from. A rerun into the same OUT skips the finished scenes and redoes the partial ones; an OUT
-holding anything else (other files, another format, another dataset) is refused before anything
-is written. A file format (tapvid) writes one file atomically.
+A folder format (kubric, cotracker) writes one folder per scene, named by the scene index
+(`00000042`, as Kubric's job folders are integers), into its scene root: OUT itself (cotracker),
+or a sub-folder of it that holds nothing but scene folders (kubric: `OUT/scenes/`, the data path
+of Kubric's builders, which read every entry of their path as a scene; `ExportFormat.subfolder`).
+OUT holds the ownership marker (`c4d_core.ownership`) beside them. Each scene is written whole
+into `NAME.partial` (`c4d_core.files.staged_folder`) and renamed when complete, so a folder `NAME`
+is always a finished scene and a finished export holds no other entry; the first file of each is
+`c4d_export.json` (`RECORD`): the format and the dataset it came from. A rerun into the same OUT
+skips the finished scenes and redoes the partial ones; an OUT holding anything else (other files,
+another format, another dataset, another layout) is refused before anything is written. A file
+format (tapvid) writes one file atomically.
 """
 
 from __future__ import annotations
@@ -59,8 +63,9 @@ class ExportFormat:
     `fields`: the Scene fields it reads (None: all); `layers`: the optional ones of those it cannot
     do without (a scene without one is refused, naming the layer and its `LAYER_SWITCHES` entry).
     A folder format has `write_scene(scene, folder, name)`, writing the scene `name` into its
-    (empty, staged) folder; a file format has `write_file(scenes, path)`, writing every
-    (name, scene) pair of `scenes` into one file and returning how many.
+    (empty, staged) folder, and `subfolder`, the folder of OUT its scene folders go into ("": OUT
+    itself); a file format has `write_file(scenes, path)`, writing every (name, scene) pair of
+    `scenes` into one file and returning how many.
     """
 
     name: str
@@ -69,6 +74,11 @@ class ExportFormat:
     layers: tuple[str, ...]
     write_scene: Callable[[Scene, Path, str], None] | None = None
     write_file: Callable[[Iterator[tuple[str, Scene]], Path], int] | None = None
+    subfolder: str = ""
+
+    def scene_root(self, out: Path) -> Path:
+        """The folder of `out` that holds this folder format's scene folders."""
+        return out / self.subfolder if self.subfolder else out
 
 
 def write_member(path: Path, data: bytes) -> None:
@@ -192,16 +202,35 @@ def _read_record(folder: Path) -> dict[str, Any] | None:
     return record if isinstance(record, dict) else None
 
 
+def _entries(folder: Path) -> list[Path]:
+    """The entries of `folder` (none where it is missing) but its ownership marker, by name."""
+    return sorted(p for p in folder.iterdir() if p.name != MARKER) if folder.is_dir() else []
+
+
+def _refuse(fmt: ExportFormat, out: Path, source: dict[str, Any], what: str) -> UserError:
+    return UserError(f"{out} is not empty and is not a {fmt.name} export of this dataset "
+                     f"({describe(source)}): it holds {what}; choose a new or empty folder")
+
+
 def _claim_folder(fmt: ExportFormat, out: Path, source: dict[str, Any]) -> set[str]:
     """The names of the finished scenes in `out`; a UserError unless `out` is missing, empty, or
-    holds only scene folders (finished or partial) of a `fmt` export of the dataset `source`."""
+    holds (beside its marker, in `fmt`'s scene root) only scene folders, finished or partial, of
+    a `fmt` export of the dataset `source`."""
     if out.exists() and not out.is_dir():
         raise UserError(f"{out} is a file; the {fmt.name} export writes a folder of scene folders: "
                         "choose a new or empty folder")
+    root = fmt.scene_root(out)
+    for entry in _entries(out) if fmt.subfolder else ():
+        if entry.name == fmt.subfolder and entry.is_dir():
+            continue
+        if (_read_record(entry) or {}).get("format") == fmt.name:
+            raise UserError(f"{out} holds the scene folder {entry.name} of an earlier {fmt.name} "
+                            f"export, which wrote scene folders into OUT itself; they now go "
+                            f"into {root}: move them there (mkdir {root} && mv {out}/[0-9]* "
+                            f"{root}/) or choose a new folder")
+        raise _refuse(fmt, out, source, f"{entry.name}, which no {fmt.name} export writes there")
     finished = set()
-    for entry in sorted(out.iterdir()) if out.is_dir() else ():
-        if entry.name == MARKER:
-            continue  # the folder's own marker (c4d_core.ownership)
+    for entry in _entries(root):
         name = entry.name.removesuffix(PARTIAL)
         record = _read_record(entry) if entry.is_dir() and name.isdigit() else None
         if record == {"format": fmt.name, "source": source, "scene": name}:
@@ -211,22 +240,22 @@ def _claim_folder(fmt: ExportFormat, out: Path, source: dict[str, Any]) -> set[s
         if record is None and entry.name.endswith(PARTIAL) and entry.is_dir() and not any(entry.iterdir()):
             continue  # a partial scene killed before its first file
         theirs = record.get("source") if record else None
-        what = (f"{entry.name}, a {record.get('format')} export of "
-                f"{describe(theirs) if isinstance(theirs, dict) else theirs}" if record else
-                f"{entry.name}, which no {fmt.name} export writes")
-        raise UserError(f"{out} is not empty and is not a {fmt.name} export of this dataset "
-                        f"({describe(source)}): it holds {what}; choose a new or empty folder")
+        raise _refuse(fmt, out, source,
+                      f"{entry.name}, a {record.get('format')} export of "
+                      f"{describe(theirs) if isinstance(theirs, dict) else theirs}" if record else
+                      f"{entry.name}, which no {fmt.name} export writes")
     return finished
 
 
 def export_folders(fmt: ExportFormat, data: str | Path, out: Path) -> tuple[int, int]:
-    """Export every scene of `data` into `out/NAME/` (claimed by the caller), skipping finished
-    ones; returns (written, already there)."""
+    """Export every scene of `data` into `ROOT/NAME/` (ROOT: `fmt.scene_root(out)`; `out` claimed
+    by the caller), skipping finished ones; returns (written, already there)."""
     scenes = _Scenes(fmt, data)
     finished = _claim_folder(fmt, out, scenes.source)
+    root = fmt.scene_root(out)
     written = 0
     for name, scene in _progress(fmt, scenes.pending(finished), scenes.total, len(finished)):
-        with staged_folder(out / name) as stage:
+        with staged_folder(root / name) as stage:
             write_json(stage / RECORD, {"format": fmt.name, "source": scenes.source, "scene": name})
             fmt.write_scene(scene, stage, name)
         written += 1
@@ -263,6 +292,7 @@ def export(fmt: ExportFormat, data: str | Path, out: str | Path,
     else:
         with output_folder(out, f"export-{fmt.name}", overwrite):
             written, skipped = export_folders(fmt, data, out)
-    log.info("exported %d scenes as %s to %s in %.0f s%s", written, fmt.name, out,
-             time.perf_counter() - start, f" ({skipped} already there)" if skipped else "")
+    log.info("exported %d scenes as %s to %s in %.0f s%s", written, fmt.name,
+             out if fmt.write_scene is None else fmt.scene_root(out), time.perf_counter() - start,
+             f" ({skipped} already there)" if skipped else "")
     return written, skipped

@@ -1,6 +1,6 @@
 """`c4d export FORMAT DATA OUT`: a datagen dataset in another project's layout.
 
-    c4d export kubric data/movi-e kubric/         # Kubric's MOVi worker folders
+    c4d export kubric data/movi-e kubric/         # Kubric's MOVi worker folders, in kubric/scenes/
     c4d export cotracker data/movi-e cotracker/   # CoTracker's Kubric training folders
     c4d export tapvid data/val val.pkl            # a TAP-Vid pickle for tapnet's evaluation
 

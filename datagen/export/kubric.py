@@ -1,5 +1,8 @@
 """`c4d export kubric`: each scene as the folder Kubric's MOVi worker writes (movi_def_worker.py).
 
+The scene folders go into OUT/scenes/ (`SCENES`), which holds nothing else once the export is
+finished: that folder is the data path of Kubric's builders, which read every entry of their path
+as a scene; OUT holds the ownership marker beside it (datagen/export/base.py).
 Per scene, for frames i = 0..T-1 (docs/FORMAT.md, "Exports"):
 
 - `rgba_{i:05d}.png`: 8-bit RGBA, alpha 255;
@@ -49,6 +52,7 @@ MOVI_F = "movi-f"  # scenes of this preset are written for movi_f.py, the others
 # its 512-pixel frame. For it, the ranges are written in pixels / 512.
 MOVI_F_FLOW_UNIT = 512.0
 PROCEDURAL_BACKDROP = "procedural"  # `background` of a scene without a background image
+SCENES = "scenes"  # OUT/scenes/: the scene folders, the data path of Kubric's builders
 
 
 @dataclass(frozen=True)
@@ -285,10 +289,12 @@ def write_scene(scene: Scene, folder: Path, name: str) -> None:
 
 FORMAT = ExportFormat(
     name="kubric",
-    summary="Kubric's MOVi worker layout: a folder per scene of rgba/depth/segmentation/flow/"
-            "normal/object_coordinates frames, metadata.json, events.json, data_ranges.json",
+    summary="Kubric's MOVi worker layout: in OUT/scenes/ (the data path of Kubric's TFDS "
+            "builders) a folder per scene of rgba/depth/segmentation/flow/normal/"
+            "object_coordinates frames, metadata.json, events.json, data_ranges.json",
     fields=None,
     layers=("depth", "segmentation", "flow_fwd", "flow_bwd", "object_to_world", "normal",
             "object_coordinates", "instances", "events"),
     write_scene=write_scene,
+    subfolder=SCENES,
 )

@@ -20,7 +20,7 @@ Two layouts, told apart by the dict's keys:
     `coords_depth` (N,T), `depth`, `camera` {`focal_length`, `positions` (T,3), `quaternions`
     (T,4)} and per-frame depth maps `SEQ/depths/000.npy ...`. Each track point is lifted to the
     world per frame: X(t) = cam_to_world(t) [z(t) K^-1 (x, y, 1)] with z = `coords_depth`, and
-    labelled as our scenes are (`datagen.annotate.point_tracks`): displacement[:, t] = |X(t) -
+    labelled as our scenes are (`datagen.annotate.world_motion`): displacement[:, t] = |X(t) -
     X(t-1)| (t = 0: to t = 1), moving = displacement > `options.mobility_threshold` (0.01 units a
     frame by default, `datagen.foreign.ReadOptions`), tracks_world = X. The data has no objects,
     so `mobility_rule="object"` cannot apply: such scenes are labelled by the point rule, with one
@@ -60,6 +60,7 @@ from c4d_core.errors import UserError
 from c4d_core.geometry import intrinsics_from_lens, unproject
 from c4d_core.pickles import read_data_pickle
 from c4d_core.video import read_video
+from datagen.annotate import world_motion
 from datagen.foreign import ReadOptions, Unit
 from datagen.foreign.kubric_worker import camera_from_kubric, detect_folders, folder_units
 from datagen.scene import Scene
@@ -153,16 +154,6 @@ def _camera(record: dict, path: Path, num_frames: int, height: int,
         _array(camera, path, "positions", (num_frames, 3), where="camera."),
         _array(camera, path, "quaternions", (num_frames, 4), where="camera."))
     return intrinsics, cam_to_world
-
-
-def world_motion(world: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """displacement float32 (N,T) and moving bool (N,T) of world points (N,T,3), as our scenes
-    define them (`datagen.annotate.point_tracks`): the distance moved since t-1 (t = 0: to t = 1),
-    moving where it exceeds `threshold`."""
-    step = np.linalg.norm(np.diff(world, axis=1), axis=-1)  # (N,T-1)
-    displacement = (np.concatenate([step[:, :1], step], axis=1) if world.shape[1] > 1
-                    else np.zeros(world.shape[:2])).astype(np.float32)
-    return displacement, displacement > threshold  # the label of the stored displacement
 
 
 WARNINGS = {

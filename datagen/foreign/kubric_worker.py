@@ -1,8 +1,10 @@
 """Folders in Kubric's worker layout read as `Scene`s: what Kubric's MOVi worker
 (`challenges/movi/movi_def_worker.py`) writes per scene, and what `c4d export kubric` writes.
 
-A unit is one scene folder (reference kubric_movi.md 2.1-2.5; docs/FORMAT.md "Reading Kubric's
-data"), frames i = 0..T-1 (T = `metadata.num_frames`), H x W pixels:
+A source is one scene folder, a folder of them (Kubric's job folder), or the OUT of `c4d export
+kubric`, whose scene folders are in OUT/scenes/ (`scene_root`). A unit is one scene folder
+(reference kubric_movi.md 2.1-2.5; docs/FORMAT.md "Reading Kubric's data"), frames i = 0..T-1
+(T = `metadata.num_frames`), H x W pixels:
 
 - `rgba_{i:05d}.png` 8-bit RGBA; `depth_{i:05d}.tiff` float32 Euclidean distance from the camera
   centre; `segmentation_{i:05d}.png` 8-bit palette indices; `forward_flow_`, `backward_flow_`,
@@ -66,9 +68,11 @@ from PIL import Image, UnidentifiedImageError
 
 from c4d_core.errors import UserError
 from c4d_core.geometry import make_pose, quat_to_matrix
+from c4d_core.ownership import read_marker
 from datagen.annotate import tapvid_kubric_tracks
 from datagen.export.kubric import (BLENDER_AXES, LENS, MOVI_F_FLOW_UNIT, SHAPE, STAND_INS,
                                    euclidean_range)
+from datagen.export.kubric import FORMAT as EXPORT
 from datagen.export.base import PARTIAL
 from datagen.foreign import ReadOptions, Unit, mobility_labels
 from datagen.scene import EVENT_KEYS, INSTANCE_KEYS, OPTIONAL_LAYERS, Scene
@@ -132,14 +136,24 @@ def folder_units(path, split: str | None, kind: str, is_unit: Callable[[Path], b
     return [Unit(kind, str(folder), index, str(folder)) for index, folder in enumerate(folders)]
 
 
+def scene_root(path: Path) -> Path:
+    """The folder of scene folders that `path` stands for: its `scenes/` where `path` is the OUT
+    of `c4d export kubric` (marked as that command's output, `c4d_core.ownership`), else `path`
+    itself (a scene folder, a folder of them: Kubric's job folder, an export's OUT/scenes/)."""
+    path = Path(path)
+    return EXPORT.scene_root(path) if read_marker(path) == f"export-{EXPORT.name}" else path
+
+
 def detect(path: Path) -> bool:
-    """Whether `path` is a scene folder in Kubric's worker layout or a folder of them."""
-    return detect_folders(path, is_scene_folder)
+    """Whether `path` is a scene folder in Kubric's worker layout, a folder of them, or a `c4d
+    export kubric` OUT (`scene_root`)."""
+    return detect_folders(scene_root(path), is_scene_folder)
 
 
 def units(path, split: str | None = None) -> list[Unit]:
-    """One `Unit` per scene folder of `path` (`folder_units`), the pieces loader workers share."""
-    return folder_units(path, split, KIND, is_scene_folder, EXPECTED)
+    """One `Unit` per scene folder of `path` (`scene_root`, `folder_units`), the pieces loader
+    workers share."""
+    return folder_units(scene_root(path), split, KIND, is_scene_folder, EXPECTED)
 
 
 def read_units(unit: Unit, options: ReadOptions = ReadOptions()) -> Iterator[Scene]:
@@ -225,10 +239,16 @@ def _frames(folder: Path, layer: str, num_frames: int, channels: int | None,
     return np.stack(frames)
 
 
-def decode_range(values: np.ndarray, low: float, high: float) -> np.ndarray:
-    """Kubric's 16-bit scaled layers: float32 v / 65535 (high - low) + low (the inverse of the
-    export's `encode_flow`, within one step of the stored value, as Kubric's TFDS decodes)."""
-    return (values.astype(np.float64) / UINT16_MAX * (high - low) + low).astype(np.float32)
+def decode_range(values: np.ndarray, low: float, high: float, sign: float = 1.0) -> np.ndarray:
+    """Kubric's 16-bit scaled layers (flows, normals, object coordinates, TFDS depth): float32
+    sign x (v / 65535 (high - low) + low) of the codes `values` (any shape, unsigned ints), as
+    Kubric's TFDS decodes them; the inverse of the export's `encode_flow`, within one step of the
+    stored value. One float32 multiply-add (within 1e-7 relative of float64), no float64 copy;
+    the one decoder of these layers, for worker folders and TFDS records (`tfds_movi`) alike."""
+    scale, offset = np.float32(sign * (high - low) / UINT16_MAX), np.float32(sign * low)
+    decoded = np.multiply(values, scale, dtype=np.float32, casting="unsafe")
+    decoded += offset
+    return decoded
 
 
 def intrinsics_from_kubric(k_normalised: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -383,8 +403,8 @@ def read_scene(folder: str | Path, index: int = 0, options: ReadOptions = ReadOp
         if options.wants(ours):
             low, high = (float(_array(ranges, folder / "data_ranges.json", (), theirs, end))
                          * (MOVI_F_FLOW_UNIT if movi_f else 1.0) for end in ("min", "max"))
-            drow_dcol = decode_range(layer(theirs, 3, np.uint16)[..., :2], low, high)
-            decoded[ours] = sign * drow_dcol[..., ::-1]  # (T,H,W,2) (dx, dy)
+            # channels (dcol, drow) = (dx, dy), (T,H,W,2)
+            decoded[ours] = decode_range(layer(theirs, 3, np.uint16)[..., 1::-1], low, high, sign)
     if options.wants("normal"):
         decoded["normal"] = decode_range(layer("normal", 3, np.uint16), -1.0, 1.0)
     if options.wants("object_coordinates"):

@@ -79,7 +79,7 @@ from c4d_core.errors import UserError
 from datagen.annotate import tapvid_kubric_tracks
 from datagen.export.kubric import euclidean_range
 from datagen.foreign import ReadOptions, Unit, mobility_labels
-from datagen.foreign.kubric_worker import camera_from_kubric, pose_from_kubric
+from datagen.foreign.kubric_worker import camera_from_kubric, decode_range, pose_from_kubric
 from datagen.scene import OPTIONAL_LAYERS, Scene
 
 log = logging.getLogger(__name__)
@@ -472,16 +472,11 @@ class Record:
 
     def flow(self, key: str, shape: tuple[int, int, int], sign: float) -> np.ndarray:
         """float32 (T,H,W,2) (dx, dy) of a flow feature: uint16 (drow, dcol) values in an int64
-        list, v / 65535 * (hi - lo) + lo over its range `metadata/KEY_range`, times `sign`."""
+        list, v / 65535 * (hi - lo) + lo over its range `metadata/KEY_range`, times `sign`
+        (`decode_range`)."""
         lo, hi = self.values(f"metadata/{key}_range", 2).astype(np.float64)
         raw = self.values(key, int(np.prod(shape)) * 2, small=True).reshape(shape + (2,))
-        scale, offset = np.float32(sign * (hi - lo) / 65535), np.float32(sign * lo)
-        out = np.empty(shape + (2,), np.float32)
-        for ours, theirs in ((0, 1), (1, 0)):  # dx = dcol, dy = drow, in float32
-            np.multiply(raw[..., theirs], scale, out=out[..., ours], dtype=np.float32,
-                        casting="unsafe")
-        out += offset
-        return out
+        return decode_range(raw[..., ::-1], lo, hi, sign)  # dx = dcol, dy = drow
 
 
 OBJECT_KEYS = {"asset_id": "asset_id", "category": "category", "scale": "scale", "mass": "mass",
@@ -523,9 +518,10 @@ def decode_record(data: bytes, unit: Unit, options: ReadOptions) -> Scene:
     sensor = float(record.values("camera/sensor_width", 1)[0])  # mm, spanning the width
     K = geometry.intrinsics_from_lens(focal, sensor, height, width)  # (3,3) float64
     intrinsics = np.repeat(K[None].astype(np.float32), num_frames, axis=0)
-    # z = d / |K^-1 [u, v, 1]|, d = v / 65535 (hi - lo) + lo, in float32 (7e-8 relative)
+    # z = d / |K^-1 [u, v, 1]|, d = v / 65535 (hi - lo) + lo (`decode_range`), in float32
     inverse_ray = 1 / euclidean_range(np.ones((1, height, width), np.float32), K[None])  # (1,H,W)
-    depth = distance * (inverse_ray * np.float32((hi - lo) / 65535)) + inverse_ray * np.float32(lo)
+    depth = decode_range(distance, lo, hi)
+    depth *= inverse_ray
     cam_to_world = camera_from_kubric(  # (T,4,4) OpenCV axes
         record.values("camera/positions", num_frames * 3).reshape(-1, 3),
         record.values("camera/quaternions", num_frames * 4).reshape(-1, 4)).astype(np.float32)
@@ -548,11 +544,10 @@ def decode_record(data: bytes, unit: Unit, options: ReadOptions) -> Scene:
              if options.wants(ours) and record.has(theirs)}
     layers = {}
     if options.wants("normal") and record.has("normal"):
-        layers["normal"] = (record.frames("normal", np.uint16, 3, size)
-                            * np.float32(2 / 65535) - np.float32(1))
+        layers["normal"] = decode_range(record.frames("normal", np.uint16, 3, size), -1.0, 1.0)
     if options.wants("object_coordinates") and record.has("object_coordinates"):
-        layers["object_coordinates"] = (record.frames("object_coordinates", np.uint16, 3, size)
-                                        * np.float32(1 / 65535))
+        layers["object_coordinates"] = decode_range(
+            record.frames("object_coordinates", np.uint16, 3, size), 0.0, 1.0)
 
     name = record.scalar("metadata/video_name", str(unit.index))
     file_name = RECORD_NAME.match(Path(unit.path).name)
