@@ -35,10 +35,11 @@ browser:
 test: install browser
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-# The README's pictures from the current demo (all of its first reconstructed val scene); the
+# The README's pictures from the current demo (all of its first reconstructed val scene, rendered
+# again at the reconstruction's size by the recon-data step); the
 # 4D view is drawn by `c4d view --screenshot` (headless Chromium, as the browser tests draw it).
 DEMO_RECON := demo_out/reconstruct/scene-000/c4d
-DEMO_TRUTH := demo_out/data/val/movi-e
+DEMO_TRUTH := demo_out/recon-data/movi-e
 readme-pictures: install browser
 	$(BIN)/c4d demo --out demo_out
 	cp demo_out/pictures/readme/*.png docs/images/

@@ -357,7 +357,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "data.resolution": size(), "data.frames": integer(2), "data.scenes_per_shard": COUNT,
         "data.workers": COUNT,
         "train.config": text(), "train.steps": ONE_CYCLE_STEPS, "train.overrides": texts(),
-        "eval.num_tracks": COUNT,
+        "eval.num_tracks": COUNT, "eval.paper_scenes": integer(0), "eval.paper_resolution": size(),
         "recon.preset": text(), "recon.num_scenes": COUNT, "recon.resolution": size(),
         "recon.config": text(),
         "recon.flow": text(), "recon.overrides": texts(),

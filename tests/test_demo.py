@@ -15,12 +15,17 @@ def demo_out(tmp_path_factory):
 
 
 def test_every_step_ran_and_the_summary_has_every_number(demo_out):
-    for step in ("data", "train", "eval", "recon-data", "reconstruct", "pictures"):
+    for step in ("data", "train", "eval", "paper-eval", "recon-data", "reconstruct", "pictures"):
         assert json.loads((demo_out / step / "done.json").read_text())["seconds"] >= 0
     summary = (demo_out / "summary.md").read_text()
     assert "DynPT (trained here)" in summary and "zero motion, all static" in summary
     assert "| C4D |" in summary and "| GA only |" in summary and "nan" not in summary
     assert "DynPT above the baseline on D-ACC: **" in summary
+    # the paper's protocol on the val scenes rendered again with 24 frames: 256 tracks at 256x256
+    paper = json.loads((demo_out / "paper-eval" / "eval.json").read_text())
+    assert set(paper) == {"movi-e", "movi-e-panning"}
+    assert all(r["dynpt"]["num_videos"] == 1 and 0 <= r["dynpt"]["moving_ap"] <= 1 for r in paper.values())
+    assert "## Tracker, the paper's D-ACC protocol" in summary and "with 24 frames at 32x32" in summary
     for name in ("frames", "depth", "masks", "poses_tum.txt", "scene.ply", "report.json"):
         assert (demo_out / "reconstruct" / "scene-000" / "c4d" / name).exists()
     assert (demo_out / "pictures" / "dataset" / "index.html").exists()
@@ -47,7 +52,7 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
 def test_rerun_resumes_and_skips_every_step(demo_out, caplog):
     caplog.set_level("INFO", logger="c4d.demo")
     assert main(["demo", "--quick", "--out", str(demo_out)]) == 0
-    assert caplog.text.count("done before, skipped") == 6
+    assert caplog.text.count("done before, skipped") == 7
 
 
 def test_another_config_into_the_same_folder_is_refused(demo_out, capsys):
