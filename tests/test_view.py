@@ -1,6 +1,7 @@
 """`c4d view`: the page's data against the reconstruction it shows, the page in headless
 Chromium (ready, counts drawn, screenshots at two frames, no console errors, nothing fetched),
-served, the screenshot command, `c4d inspect`'s reports in the same browser, and bad input.
+served, the screenshot command, a 1,000-frame reconstruction thinned to the page budget,
+`c4d inspect`'s reports in the same browser, and bad input.
 
 The browser tests (marker `browser`) need Chromium (`make test` installs or finds it, see the
 README); where there is none they are skipped with the reason.
@@ -173,6 +174,7 @@ def test_page_data_is_the_reconstruction_after_the_documented_subsample(tmp_path
     moving = _array(header, data, "track_moving").reshape(T, N).astype(bool)
     np.testing.assert_array_equal(moving, (recon.tracks_2d["moving"] > 0.5) & valid)
     assert len(header["cameras"]["cam_to_world"]) == T and header["gt_cameras"] is None
+    assert header["thinned"] is None  # a short video is not thinned by the page's size budget
     # one file: no element loads anything from elsewhere, the scripts come inside it
     assert re.findall(r'<(?:script|link|img|iframe)[^>]*\b(?:src|href)="([^"]*)"', text) == ["data:,"]
 
@@ -352,6 +354,68 @@ def test_inspect_reports_open_without_errors_or_broken_images(tmp_path, browser,
     assert len(images) >= 2, images
     assert [src for src, complete, width in images if not complete or width == 0] == []
     assert page.errors() == []
+
+
+LONG_T = 400  # frames of the long reconstruction, at 16x12: 48 points a frame at stride 2 (the
+# page's size at 1,000 frames of 256x192 is measured by benchmarks/bench_view.py)
+
+
+@pytest.fixture(scope="module")
+def long_recon(tmp_path_factory) -> Path:
+    scene = make_box_scene(num_frames=LONG_T, height=12, width=16, num_tracks=8, seed=5)
+    return write_reconstruction(scene, tmp_path_factory.mktemp("long") / "recon")
+
+
+@pytest.mark.browser
+def test_a_long_reconstruction_is_thinned_to_the_page_budget_and_plays(tmp_path, browser, long_recon):
+    """400 frames with a page budget that holds about 60 % of their points: the page stays
+    under it, every frame is thinned alike (one cap for all) and the page says how
+    many of how many points it draws; in Chromium the first frame is drawn and the slider
+    reaches the last one."""
+    full = tmp_path / "full.html"
+    assert main(["view", str(long_recon), "--save", str(full), "--max-page-mb", "0"]) == 0
+    header, _ = _decode(full.read_text())
+    counts = np.add(header["points"]["static"], header["points"]["dynamic"])  # (T,) unthinned
+    assert header["thinned"] is None and len(counts) == LONG_T
+    budget_mb = round((full.stat().st_size - 0.4 * counts.sum() * scene_data.BYTES_PER_POINT) / 1e6, 3)
+    out = tmp_path / "view.html"
+    assert main(["view", str(long_recon), "--save", str(out), "--max-page-mb", str(budget_mb)]) == 0
+    assert out.stat().st_size <= budget_mb * 1e6
+    header, _ = _decode(out.read_text())
+    thinned, drawn = header["thinned"], np.add(header["points"]["static"], header["points"]["dynamic"])
+    np.testing.assert_array_equal(drawn, np.minimum(counts, thinned["cap"]))  # alike in every frame
+    assert thinned["points"] == drawn.sum() and thinned["of"] == counts.sum()
+    assert 0.5 * counts.sum() < drawn.sum() < 0.7 * counts.sum()
+
+    page = browser.open(out.as_uri())
+    chromium.wait_for_view(page)
+    page.next_frames()
+    stats = page.evaluate("c4dView.stats")
+    assert (stats["frame"], stats["frames"], stats["points"]) == (0, LONG_T, drawn[0])
+    assert _drawn_fraction(_canvas_pixels(page, page.screenshot())) > 0.01
+    note = page.evaluate("document.getElementById('thinned').textContent")
+    assert f"{thinned['points']:,} of {counts.sum():,} points drawn" in note
+    assert f"for a page under {budget_mb} MB (--max-page-mb)" in note
+    page.evaluate("(() => { const s = document.getElementById('frame'); s.value = s.max; "
+                  "s.dispatchEvent(new Event('input')); })()")  # the slider to its end
+    page.next_frames()
+    stats = page.evaluate("c4dView.stats")
+    assert (stats["frame"], stats["points"]) == (LONG_T - 1, drawn[-1])
+    assert page.evaluate("document.getElementById('frame-label').textContent").startswith(
+        f"frame {LONG_T - 1} of 0-{LONG_T - 1}")
+    assert page.errors() == []
+
+
+@pytest.mark.parametrize("value, words", [
+    ("-1", "--max-page-mb must be a number of megabytes >= 0 (0: no limit), got -1"),
+    ("nan", "--max-page-mb must be a number of megabytes >= 0"),
+    ("0.5", "--max-page-mb 0.5 cannot hold this page: its HTML, three.js, cameras and tracks"),
+])
+def test_a_bad_page_budget_is_one_line(tmp_path, capsys, recon_dir, value, words):
+    line = _one_error_line(capsys, ["view", str(recon_dir), "--save", str(tmp_path / "v.html"),
+                                    "--max-page-mb", value])
+    assert words in line
+    assert not (tmp_path / "v.html").exists()
 
 
 def _one_error_line(capsys, argv) -> str:

@@ -3,9 +3,11 @@
 SOURCE is the OUT folder of `c4d run` / `c4d demo` (its point clouds, cameras, motion masks and
 3D tracks; `--gt DATA --scene-index I` draws that scene's ground-truth cameras beside them,
 Sim(3)-aligned) or a shard set of `c4d datagen` (`--scene I` from its ground truth). The page is
-one self-contained HTML file (c4d.view.page): `--save FILE` writes it, `--screenshot PNG` draws
-it in headless Chromium, and without either it is served on 127.0.0.1:`--port` and opened in
-the default browser (`--no-browser`: only print the address) until Ctrl-C.
+one self-contained HTML file (c4d.view.page), a long video's points thinned alike in every frame
+to keep it under `--max-page-mb` (scene_data.frame_selections): `--save FILE` writes it,
+`--screenshot PNG` draws it in headless Chromium, and without either it is served on
+127.0.0.1:`--port` and opened in the default browser (`--no-browser`: only print the address)
+until Ctrl-C.
 """
 
 from __future__ import annotations
@@ -58,6 +60,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-points", type=_positive, default=scene_data.DEFAULT_MAX_POINTS,
                         metavar="N", help="at most N points per frame, evenly among those kept "
                                           f"(default {scene_data.DEFAULT_MAX_POINTS})")
+    parser.add_argument("--max-page-mb", type=float, default=scene_data.DEFAULT_MAX_PAGE_MB,
+                        metavar="MB", help="thin every frame's points alike so that the page stays "
+                                           "under MB megabytes (default "
+                                           f"{scene_data.DEFAULT_MAX_PAGE_MB:g}; 0: no limit)")
     parser.add_argument("--min-confidence", type=float, metavar="C",
                         help="reconstructions: draw points of confidence >= C "
                              f"(default {scene_data.DEFAULT_MIN_CONFIDENCE:g}: all)")
@@ -99,6 +105,9 @@ def resolve_options(args, reconstruction: bool) -> None:
     ])
     if args.min_confidence is not None and not math.isfinite(args.min_confidence):
         raise UserError(f"--min-confidence must be a finite number, got {args.min_confidence}")
+    if not (math.isfinite(args.max_page_mb) and args.max_page_mb >= 0):
+        raise UserError(f"--max-page-mb must be a number of megabytes >= 0 (0: no limit), got "
+                        f"{args.max_page_mb:g}")
     defaults = {"scene": 0, "scene_index": 0, "size": (1280, 800), "port": DEFAULT_PORT,
                 "min_confidence": scene_data.DEFAULT_MIN_CONFIDENCE}
     for name, value in defaults.items():
@@ -184,6 +193,23 @@ def serve(server: ThreadingHTTPServer, open_browser: bool) -> None:
         print("stopped", flush=True)
 
 
+def point_budget(view: scene_data.ViewScene, max_page_mb: float, max_tracks: int) -> int | None:
+    """The most points a page of at most `max_page_mb` megabytes (1e6 bytes) holds beside its
+    HTML, three.js, cameras and tracks (None: no limit); a `UserError` where that leaves fewer
+    than one point per frame."""
+    from c4d.view.page import page_overhead
+
+    if not max_page_mb:
+        return None
+    other = page_overhead(view.title) + scene_data.page_other_bytes(view, max_tracks)
+    budget = (int(max_page_mb * 1e6) - other) // scene_data.BYTES_PER_POINT
+    if budget < view.num_frames:
+        raise UserError(f"--max-page-mb {max_page_mb:g} cannot hold this page: its HTML, three.js, "
+                        f"cameras and tracks of {view.num_frames} frames take {other / 1e6:.1f} MB "
+                        "before any point; give more (0: no limit)")
+    return budget
+
+
 def run(args) -> int:
     from c4d.view.page import build_page
     from c4d_pipeline.outputs import is_reconstruction
@@ -207,10 +233,16 @@ def run(args) -> int:
             raise UserError(f"--frame must be 0..{view.num_frames - 1}, got {args.frame}")
         if args.max_tracks == 0:
             view.tracks = None
-        payload = scene_data.encode(view, args.stride, args.max_points, args.max_tracks)
+        payload = scene_data.encode(view, args.stride, args.max_points, args.max_tracks,
+                                    point_budget(view, args.max_page_mb, args.max_tracks))
+        if payload.header["thinned"]:
+            payload.header["thinned"]["max_page_mb"] = args.max_page_mb
         page = build_page(payload).encode("utf-8")
         points = sum(payload.header["points"]["static"]) + sum(payload.header["points"]["dynamic"])
         log.info("%d frames, %d points, page of %.1f MB", view.num_frames, points, len(page) / 1e6)
+        if payload.header["thinned"]:
+            log.info("thinned to at most %d points per frame for a page under %g MB (--max-page-mb)",
+                     payload.header["thinned"]["cap"], args.max_page_mb)
         if server is not None:
             server.page = page
             serve(server, not args.no_browser)

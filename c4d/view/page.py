@@ -36,6 +36,11 @@ def _script_text(text: str) -> str:
     return text.replace("</", "<\\/")
 
 
+def page_overhead(title: str) -> int:
+    """Bytes of the page (UTF-8) besides its header and payload: the HTML, three.js and the viewer."""
+    return len(build_page(Payload({"title": title}, b"")).encode("utf-8"))
+
+
 def build_page(payload: Payload) -> str:
     """The whole page (HTML text) showing `payload`."""
     imports = {name: "data:text/javascript;base64," + base64.b64encode(

@@ -14,6 +14,13 @@ over the frame's kept pixels in row order. The defaults (stride 2, 20,000 points
 90 frames of 512x384 at 1.8 M points, about 16 MB of data (docs/ARCHITECTURE.md, "c4d view").
 Within a frame the static points come first, then the dynamic ones.
 
+Long videos: `max_total` caps the points of all frames together (c4d.view.cli turns the page
+size `--max-page-mb` into it with `page_other_bytes`) by lowering the per-frame cap to the
+largest that fits (`frame_selections`), so every frame is thinned alike and short videos not at
+all; the header's `thinned` says by how much. Unthinned, 1,000 frames of 256x192 make a 149 MB
+page that headless Chromium needs 5-6 s to show, 64 MB ~3 s (docs/PERFORMANCE.md, "c4d view of
+long reconstructions").
+
 The page receives a small JSON header (counts, cameras, view settings) and one binary payload
 (base64 in the page) of typed arrays: point positions as float16 relative to the scene's centre
 (the median of the drawn points; relative precision 2^-11 of the distance to it), point colours
@@ -22,6 +29,7 @@ as uint8 RGB, the tracks' positions in every frame as float16 with uint8 validit
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +44,8 @@ DEFAULT_STRIDE = 2  # every 2nd pixel of every 2nd row
 DEFAULT_MAX_POINTS = 20_000  # per frame: 90 frames stay at 1.8 M points
 DEFAULT_MIN_CONFIDENCE = 1.0  # DUSt3R-family confidences are >= 1, so the default keeps them all
 DEFAULT_MAX_TRACKS = 400  # tracks drawn, evenly chosen among those with a valid position
+DEFAULT_MAX_PAGE_MB = 64.0  # page size (1e6 bytes) the points are thinned to stay under; 0: no limit
+BYTES_PER_POINT = 12  # in the page: 3 float16 + 3 uint8 = 9 bytes, base64 (4/3)
 FLOAT16_RANGE = 60_000.0  # points farther from the centre than this are dropped (float16 max 65504)
 
 
@@ -46,7 +56,7 @@ class ViewScene:
 
     title: str
     colors: np.ndarray  # uint8 (T,H,W,3) the frames
-    points: np.ndarray  # float (T,H,W,3) world point of every pixel
+    points: np.ndarray  # float32 or float64 (T,H,W,3) world point of every pixel
     keep: np.ndarray  # bool (T,H,W)
     dynamic: np.ndarray | None  # bool (T,H,W) True = moving
     cam_to_world: np.ndarray  # float (T,4,4)
@@ -104,7 +114,7 @@ def from_reconstruction(folder: str | Path, min_confidence: float = DEFAULT_MIN_
     folder = Path(folder)
     recon = read_reconstruction(folder)
     _check_frame_files(recon, folder)
-    points = recon.points.astype(np.float64)
+    points = recon.points  # float32 (T,H,W,3): a float64 copy would double view's memory
     cam_to_world = recon.cam_to_world.astype(np.float64)
     tracks, valid, moving = recon.tracks_world, recon.tracks_valid, None
     if tracks is not None and (valid is None or tracks.shape[:2] != valid.shape
@@ -128,7 +138,7 @@ def from_reconstruction(folder: str | Path, min_confidence: float = DEFAULT_MIN_
         gt_poses = gt.cam_to_world[indices].astype(np.float64)
         gt_intrinsics = resize_intrinsics(gt.intrinsics[indices], gt.image_size, points.shape[1:3])
         scale, rotation, translation = align_onto_truth(cam_to_world, gt_poses)
-        points = scale * points @ rotation.T + translation
+        points = points @ (scale * rotation.T).astype(np.float32) + translation.astype(np.float32)
         if tracks is not None:
             tracks = scale * tracks.astype(np.float64) @ rotation.T + translation
         cam_to_world = orthonormalise(cam_to_world)
@@ -239,6 +249,41 @@ def frame_selection(keep: np.ndarray, stride: int, max_points: int) -> np.ndarra
     return kept
 
 
+def frame_selections(keep: np.ndarray, stride: int, max_points: int,
+                     max_total: int | None = None) -> tuple[list[np.ndarray], dict | None]:
+    """Every frame's `frame_selection` of `keep` (T,H,W), at most `max_points` each and, where
+    `max_total` is given, at most that many in all: the per-frame cap is then lowered to the
+    largest c with sum_t min(kept_t, c) <= max_total, so the frames are thinned alike. Returns
+    the selections and, when thinned, {"cap", "points" drawn, "of" points before thinning}."""
+    counts = np.array([np.count_nonzero(k[::stride, ::stride]) for k in keep])  # (T,)
+    wanted = int(np.minimum(counts, max_points).sum())
+    cap, thinned = max_points, None
+    if max_total is not None and wanted > max_total:
+        low, high = 0, max_points  # sum(min(counts, low)) <= max_total < sum(min(counts, high))
+        while high - low > 1:
+            middle = (low + high) // 2
+            low, high = (middle, high) if np.minimum(counts, middle).sum() <= max_total else (low, middle)
+        cap = low
+        thinned = {"cap": cap, "points": int(np.minimum(counts, cap).sum()), "of": wanted}
+    return [frame_selection(k, stride, cap) for k in keep], thinned
+
+
+def page_other_bytes(view: ViewScene, max_tracks: int) -> int:
+    """About how many bytes of the page `encode`'s header and payload take besides the points
+    (at most, give or take): the cameras (their JSON with the cameras' mean as the centre, plus
+    10 %), the per-frame counts and times, the tracks (base64), and 4 KB for the rest."""
+    frames = view.num_frames
+    centre = view.cam_to_world[:, :3, 3].mean(axis=0)
+    cameras = len(json.dumps(_cameras(view.cam_to_world, view.intrinsics, centre), separators=(",", ":")))
+    if view.gt_cam_to_world is not None:
+        cameras *= 2
+    counts = frames * 3 * (len(str(frames * view.points.shape[1] * view.points.shape[2])) + 1)
+    tracks = 0
+    if view.tracks is not None and max_tracks > 0:
+        tracks = frames * len(_track_choice(view.tracks_valid, max_tracks)) * 8 * 4 // 3 + 64
+    return int(1.1 * cameras) + counts + frames * 12 + tracks + 4096
+
+
 def _track_choice(valid: np.ndarray, max_tracks: int) -> np.ndarray:
     """Indices of at most `max_tracks` tracks with a valid position, evenly among them."""
     usable = np.flatnonzero(valid.any(axis=0))
@@ -257,12 +302,13 @@ class Payload:
 
 
 def encode(view: ViewScene, stride: int = DEFAULT_STRIDE, max_points: int = DEFAULT_MAX_POINTS,
-           max_tracks: int = DEFAULT_MAX_TRACKS) -> Payload:
-    """The page's data of `view` (the module docstring says what is kept and how it is stored)."""
+           max_tracks: int = DEFAULT_MAX_TRACKS, max_total: int | None = None) -> Payload:
+    """The page's data of `view`, at most `max_total` points in all (None: no limit; the module
+    docstring says what is kept and how it is stored)."""
     grid_points = view.points[:, ::stride, ::stride]  # (T,h,w,3)
     grid_colors = view.colors[:, ::stride, ::stride]
     grid_dynamic = None if view.dynamic is None else view.dynamic[:, ::stride, ::stride]
-    chosen = [frame_selection(k, stride, max_points) for k in view.keep]
+    chosen, thinned = frame_selections(view.keep, stride, max_points, max_total)
     drawn = [grid_points[t].reshape(-1, 3)[c] for t, c in enumerate(chosen) if len(c)]
     centre = (np.median(np.concatenate(drawn), axis=0) if drawn
               else view.cam_to_world[:, :3, 3].mean(axis=0))  # no point drawn: the cameras'
@@ -288,6 +334,7 @@ def encode(view: ViewScene, stride: int = DEFAULT_STRIDE, max_points: int = DEFA
     header = {
         "title": view.title, "notes": view.notes, "frames": view.num_frames,
         "image_size": list(view.points.shape[1:3]), "stride": stride, "max_points": max_points,
+        "thinned": thinned,
         "centre": centre.tolist(), "points": counts, "has_dynamic": view.dynamic is not None,
         "point_size": _point_size(view, chosen, stride), "fps": _fps(view.timestamps) or 10.0,
         "timestamps": None if _fps(view.timestamps) is None else np.round(view.timestamps, 4).tolist(),

@@ -62,16 +62,18 @@ function discTexture() {
   return new THREE.CanvasTexture(canvas);
 }
 
+// All cameras' frustums as one LineSegments (16 vertices each, frustumPositions' order: one draw
+// call however long the video) and the trajectory through their centres.
 function cameraGroup(cameras, size, depth, color) {
   const group = new THREE.Group();
   const material = new THREE.LineBasicMaterial({ color });
-  cameras.cam_to_world.forEach((pose, t) => {
-    const geometry = new THREE.BufferGeometry();
-    geometry.setAttribute('position', new THREE.BufferAttribute(frustumPositions(pose, cameras.intrinsics[t], size, depth), 3));
-    const frustum = new THREE.LineSegments(geometry, material);
-    frustum.frustumCulled = false;
-    group.add(frustum);
-  });
+  const positions = new Float32Array(16 * 3 * cameras.cam_to_world.length);
+  cameras.cam_to_world.forEach((pose, t) => positions.set(frustumPositions(pose, cameras.intrinsics[t], size, depth), 48 * t));
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute('position', new THREE.BufferAttribute(positions, 3));
+  const frustums = new THREE.LineSegments(geometry, material);
+  frustums.frustumCulled = false;
+  group.add(frustums);
   const path = new THREE.BufferGeometry();
   path.setAttribute('position', new THREE.BufferAttribute(
     new Float32Array(cameras.cam_to_world.flatMap(p => [p[3], p[7], p[11]])), 3));
@@ -85,12 +87,12 @@ function cameraGroup(cameras, size, depth, color) {
 // camera its apex and its image rim's corners (top-left, top-right, bottom-right, bottom-left).
 function drawnFrustums(group, centre) {
   const offset = new THREE.Vector3(...centre);
-  return group.children.filter(child => child.isLineSegments).map(frustum => {
-    const position = frustum.geometry.attributes.position;
-    const world = (i) => new THREE.Vector3().fromBufferAttribute(position, i)
-      .applyMatrix4(frustum.matrixWorld).add(offset).toArray();
-    return { apex: world(0), corners: [1, 5, 9, 13].map(world) };  // frustumPositions' order
-  });
+  const frustums = group.children.find(child => child.isLineSegments);
+  const position = frustums.geometry.attributes.position;
+  const world = (i) => new THREE.Vector3().fromBufferAttribute(position, i)
+    .applyMatrix4(frustums.matrixWorld).add(offset).toArray();
+  return Array.from({ length: position.count / 16 }, (_, t) =>
+    ({ apex: world(16 * t), corners: [1, 5, 9, 13].map(i => world(16 * t + i)) }));  // frustumPositions' order
 }
 
 function main() {
@@ -101,12 +103,18 @@ function main() {
   const T = header.frames;
   document.getElementById('title').textContent = header.title;
   const notes = document.getElementById('notes');
+  const thinned = header.thinned, count = (n) => n.toLocaleString('en-US');
   const thinning = `drawn: every ${header.stride === 1 ? '' : ordinal(header.stride) + ' '}pixel of ` +
-    `every ${header.stride === 1 ? '' : ordinal(header.stride) + ' '}row, at most ${header.max_points} per frame`;
-  for (const text of [...header.notes, thinning]) {
+    `every ${header.stride === 1 ? '' : ordinal(header.stride) + ' '}row, at most ` +
+    `${count(thinned ? thinned.cap : header.max_points)} per frame`;
+  // thinned (a long video): how many of how many points, and why (c4d view --max-page-mb)
+  const budget = thinned && `thinned for a page under ${thinned.max_page_mb} MB (--max-page-mb): ` +
+    `${count(thinned.points)} of ${count(thinned.of)} points drawn`;
+  for (const [text, id] of [...header.notes.map(n => [n]), [thinning], ...(budget ? [[budget, 'thinned']] : [])]) {
     const line = document.createElement('div');
     line.className = 'note';
     line.textContent = text;
+    if (id) line.id = id;
     notes.appendChild(line);
   }
 
