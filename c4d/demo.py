@@ -227,8 +227,7 @@ class Demo:
 
     # -- 5. pictures
     def pictures(self, folder: Path, recon_dir: str, checkpoint: str, recon_source: Path) -> dict:
-        r = self.cfg.recon
-        _c4d("inspect", self.val_dirs[r.preset], "--out", folder / "dataset")
+        _c4d("inspect", recon_source, "--out", folder / "dataset")  # the scenes as reconstructed
         _c4d("inspect", recon_dir, "--out", folder / "reconstruction",
              "--gt", recon_source, "--scene-index", 0,
              "--compare", f"GA only={Path(recon_dir).parent / 'ga-only'}")
