@@ -1,11 +1,13 @@
 """`c4d demo`: the whole chain on a small generated dataset, in minutes on a CPU.
 
-    data ─► train ─► eval ─► recon-data ─► reconstruct ─► pictures ─► OUT/summary.md
+    data ─► train ─► eval ─► paper-eval ─► recon-data ─► reconstruct ─► pictures ─► OUT/summary.md
 
 1. generate train and held-out val sets (configs/demo: movi-e and movi-e-panning, small size);
 2. train the tiny DynPT config on the CPU;
 3. evaluate D-ACC and TAP-Vid metrics on the val sets next to the zero-motion baseline
-   ("everything static"), so the numbers mean something;
+   ("everything static"), so the numbers mean something; then (paper-eval, unless
+   `eval.paper_scenes` is 0) render the first val scenes again with 24 frames at 256x256 and score
+   them by the paper's D-ACC protocol;
 4. render the first `recon.num_scenes` val scenes of `recon.preset` again at `recon.resolution`
    (the same scenes: only the size changes; recon-data), reconstruct each there with C4D
    (ground-truth-source pointmaps with the static-world bias, DIS flow, the trained tracker) and
@@ -83,6 +85,16 @@ class Demo:
                         f"{self.out} (moved or deleted); delete the folder of the step that wrote "
                         "it (train/ or reconstruct/ there) and rerun the demo to redo that step")
 
+    def render(self, preset: str, split: str, count: int, target: Path, resolution, frames: int) -> None:
+        """`c4d datagen` of the first `count` scenes of `preset`'s `split` set into `target`, at
+        `resolution` (H, W) with `frames` frames. The seed is the split's (the val sets use seed +
+        1000), so a val scene rendered again at another size or length is the same scene there."""
+        seed = self.cfg.seed + (1000 if split == "val" else 0)
+        d = self.cfg.data
+        _c4d("datagen", "--preset", preset, "--num-scenes", count, "--out", target, "--split", split,
+             "--seed", seed, "--resolution", "x".join(str(v) for v in resolution), "--frames", frames,
+             "--scenes-per-shard", d.scenes_per_shard, "--workers", d.workers)
+
     def claim_folder(self) -> None:
         """Refuse to resume into a folder made with another demo config."""
         record = self.out / "demo-config.yaml"
@@ -110,13 +122,10 @@ class Demo:
     # -- 1. data
     def data(self, folder: Path) -> dict:
         d = self.cfg.data
-        size = "x".join(str(v) for v in d.resolution)
-        for split, dirs, count, seed in (("train", self.train_dirs, d.train_scenes, self.cfg.seed),
-                                         ("val", self.val_dirs, d.val_scenes, self.cfg.seed + 1000)):
+        for split, dirs, count in (("train", self.train_dirs, d.train_scenes),
+                                   ("val", self.val_dirs, d.val_scenes)):
             for preset, target in dirs.items():
-                _c4d("datagen", "--preset", preset, "--num-scenes", count, "--out", target,
-                     "--split", split, "--seed", seed, "--resolution", size, "--frames", d.frames,
-                     "--scenes-per-shard", d.scenes_per_shard, "--workers", d.workers)
+                self.render(preset, split, count, target, d.resolution, d.frames)
         return {"train": {p: self.stored(v) for p, v in self.train_dirs.items()},
                 "val": {p: self.stored(v) for p, v in self.val_dirs.items()},
                 "scenes_per_preset": {"train": d.train_scenes, "val": d.val_scenes},
@@ -158,10 +167,7 @@ class Demo:
         e, d = self.cfg.eval, self.cfg.data
         dirs = {p: folder / p for p in d.presets}
         for preset, target in dirs.items():
-            _c4d("datagen", "--preset", preset, "--num-scenes", e.paper_scenes, "--out", target,
-                 "--split", "val", "--seed", self.cfg.seed + 1000,
-                 "--resolution", "x".join(str(v) for v in e.paper_resolution), "--frames", PAPER_FRAMES,
-                 "--scenes-per-shard", d.scenes_per_shard, "--workers", d.workers)
+            self.render(preset, "val", e.paper_scenes, target, e.paper_resolution, PAPER_FRAMES)
         eval_cfg = load_config("dynpt", self.cfg.train.config, overrides=[
             "eval.protocol=c4d-paper", "eval.num_scenes=0"]).eval
         results = _score(checkpoint, dirs, eval_cfg)
@@ -180,10 +186,7 @@ class Demo:
             return {"source": self.stored(self.val_dirs[r.preset]), "resolution": list(d.resolution),
                     "rendered": False}
         target = folder / r.preset
-        _c4d("datagen", "--preset", r.preset, "--num-scenes", r.num_scenes, "--out", target,
-             "--split", "val", "--seed", self.cfg.seed + 1000,
-             "--resolution", "x".join(str(v) for v in r.resolution), "--frames", d.frames,
-             "--scenes-per-shard", d.scenes_per_shard, "--workers", d.workers)
+        self.render(r.preset, "val", r.num_scenes, target, r.resolution, d.frames)
         return {"source": self.stored(target), "resolution": list(r.resolution), "rendered": True}
 
     # -- 4b. reconstruct

@@ -12,7 +12,8 @@ centres at integer coordinates, x the column), camera motion included, as in the
   'dis' or 'dis:PRESET'  OpenCV DIS, PRESET one of ultrafast | fast | medium (default medium);
   'dis:PRESET@Nx'         the same on frames upsampled N times (bicubic), the flow averaged back
                           to the frames' size and divided by N: finer patches on small frames
-                          (2x: motion-mask IoU 0.52 against 0.40 at 256x256, ~3x the time;
+                          (2x at 256x256: motion-mask IoU 0.41 against 0.32 on the demo's 4
+                          scenes, 0.52 against 0.40 on 4 others; ~3x the time; docs/RESULTS.md 1,
                           docs/results/masks.md)
   'gt'                    exact flow of a datagen `Scene` for ANY pair (i, j), from depth,
                           segmentation, camera and object poses (needs `scene=`;

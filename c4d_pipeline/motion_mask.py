@@ -218,9 +218,8 @@ def forward_backward_error(flow: np.ndarray, back: np.ndarray) -> np.ndarray:
     """Pixels (H,W) by which the flow i -> j (H,W,2) and the flow j -> i (H,W,2), sampled where
     the first lands (bilinear, edges replicated), fail to cancel: |f_ij(x) + f_ji(x + f_ij(x))|."""
     height, width = flow.shape[:2]
-    target = (pixel_grid(height, width) + flow).astype(np.float32)  # (H,W,2)
-    returned = cv2.remap(back.astype(np.float32), target[..., 0], target[..., 1], cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
+    target = (pixel_grid(height, width) + flow).reshape(-1, 2)  # (H*W,2) where each pixel lands
+    returned = sample_flow(back, target).reshape(height, width, 2)
     return np.linalg.norm(flow + returned, axis=-1)
 
 

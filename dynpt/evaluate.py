@@ -187,10 +187,9 @@ def load_source(source: str, eval_cfg, skipped: list[str] | None = None) -> tupl
                             "figures are: leave eval.num_scenes out")
         return list(read_tapvid(text, tuple(eval_cfg.resolution))), "tapvid"
     kind = source_kind(text)  # a UserError naming every kind expected for a folder of none
-    if kind != SHARDS:
-        return load_foreign_scenes(text, eval_cfg, skipped), kind
-    list_shards(text)  # a clear UserError if there are no shards
-    return load_eval_scenes(text, eval_cfg, skipped), "shards"
+    if kind == SHARDS:
+        list_shards(text)  # a clear UserError if there are no shards
+    return load_eval_scenes(text, eval_cfg, skipped), kind
 
 
 def load_foreign_scenes(source, eval_cfg, skipped: list[str] | None = None) -> list[dict]:
