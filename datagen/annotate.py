@@ -226,14 +226,63 @@ def world_motion(world: np.ndarray, threshold: float) -> tuple[np.ndarray, np.nd
     return displacement.astype(np.float32), displacement > threshold
 
 
+# Box corner order (8,3) of 0/1 = min/max per axis: x slowest, then y, then z (Kubric's order).
+BOX_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+def box_corners(boxes: np.ndarray) -> np.ndarray:
+    """(K,8,3) corners of axis-aligned boxes (K,2,3) given as (min, max) corners."""
+    return boxes[:, BOX_CORNERS, np.arange(3)]
+
+
+def box_frames(boxes_3d: np.ndarray) -> np.ndarray:
+    """float64 (...,4,4) affine maps from box-local coordinates to world, of boxes given by their
+    world corners (...,8,3) in `BOX_CORNERS` order.
+
+    Box-local coordinates are Kubric's object coordinates minus 0.5: the box is the cube
+    [-0.5, 0.5]^3, scaled, rotated and moved. The map is the least-squares affine fit to the 8
+    corners, as TAP-Vid-Kubric's `reproject` fits it (exact for a box's corners)."""
+    unit = np.concatenate([BOX_CORNERS - 0.5, np.ones((8, 1))], axis=1)  # (8,4) homogeneous
+    fit = np.linalg.pinv(unit) @ np.asarray(boxes_3d, np.float64)  # (...,4,3): world = unit @ fit
+    frames = np.zeros(fit.shape[:-2] + (4, 4))
+    frames[..., :3, :] = np.swapaxes(fit, -1, -2)
+    frames[..., 3, 3] = 1.0
+    return frames
+
+
+@dataclass(frozen=True)
+class BoxLift:
+    """Object points lifted as TAP-Vid-Kubric lifts them: from their object coordinates in the
+    object's 3-D box (`box_frames`), which moves with the object, instead of from depth.
+
+    object_coordinates: indexable by integer arrays [t, y, x] -> (N,3) coordinates in [0, 1]
+    (a (T,H,W,3) array, or a reader's lazy frames); boxes_3d: (K,T,8,3) world box corners of
+    objects 1..K (segment k = row k-1). Where depth is stored coarsely (16 bits over the scene's
+    range in Kubric's records) this is the more exact lift."""
+
+    object_coordinates: object
+    boxes_3d: np.ndarray
+
+    def world(self, obj: np.ndarray, tq: np.ndarray, yq: np.ndarray, xq: np.ndarray
+              ) -> np.ndarray:
+        """float64 (N,T,3) world positions over all frames of the query points (tq, yq, xq)
+        on segments `obj` >= 1."""
+        local = np.asarray(self.object_coordinates[tq, yq, xq], np.float64) - 0.5  # (N,3)
+        frames = box_frames(self.boxes_3d[obj - 1])  # (N,T,4,4)
+        return geometry.transform_points(frames, local[:, None])
+
+
 def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
                  rng: np.random.Generator, cfg, mobility_threshold: float,
-                 exact_kubric: bool = False) -> Tracks:
+                 exact_kubric: bool = False, box_lift: BoxLift | None = None) -> Tracks:
     """TAP-Vid-Kubric-style tracks with world positions, displacement and mobility labels.
 
     `cfg.tracks` holds the sampling settings (num_points, query_stride, grid_stride,
     max_sampled_fraction, depth_tolerance); `exact_kubric` samples the queries exactly as
-    TAP-Vid-Kubric does (`sample_queries`)."""
+    TAP-Vid-Kubric does (`sample_queries`). Query points are lifted to 3-D from the depth at
+    their pixel and carried by their object's pose; with `box_lift`, points on objects are
+    lifted from their object coordinates in the object's 3-D box instead (`BoxLift`), as
+    TAP-Vid-Kubric lifts them."""
     c = cfg.tracks
     poses = segment_poses(object_to_world)  # (K+1,T,4,4)
     tq, yq, xq = sample_queries(segmentation, rng, int(c.num_points), int(c.query_stride),
@@ -243,6 +292,11 @@ def point_tracks(depth, segmentation, intrinsics, cam_to_world, object_to_world,
                                      intrinsics[tq], cam_to_world[tq])  # (N,3)
     local = geometry.transform_points(geometry.invert_pose(poses[obj, tq]), query_world)  # (N,3)
     world = geometry.transform_points(poses[obj], local[:, None])  # (N,T,3)
+    on_object = obj > 0
+    if box_lift is not None and on_object.any():
+        world[on_object] = box_lift.world(obj[on_object], tq[on_object], yq[on_object],
+                                          xq[on_object])
+        query_world[on_object] = world[on_object, tq[on_object]]
     pixels, z = geometry.project(world, intrinsics[None], cam_to_world[None])  # (N,T,2), (N,T)
     occluded = occlusion(pixels, z, obj, depth, segmentation, float(c.depth_tolerance))
 
@@ -282,13 +336,15 @@ TAPVID_KUBRIC_TRACKS = {"num_points": 256, "query_stride": 4, "grid_stride": 4,
                         "max_sampled_fraction": 0.1, "depth_tolerance": 0.01}
 
 
-def tapvid_kubric_tracks(scene, seed, num_tracks: int = 256) -> Tracks:
+def tapvid_kubric_tracks(scene, seed, num_tracks: int = 256,
+                         box_lift: BoxLift | None = None) -> Tracks:
     """`num_tracks` tracks of a Scene drawn afresh as TAP-Vid-Kubric draws them, seeded.
 
     Needs the scene's depth, segmentation, cameras and object poses (datagen shards, or a reader
     of Kubric's data); its mobility threshold is `scene.meta['mobility_threshold']` (world units
     a frame). `seed`: an int or a sequence of ints for `np.random.default_rng` (e.g. [seed,
-    video index]). Raises ValueError when a layer is missing.
+    video index]); `box_lift`: lift object points from object coordinates and 3-D boxes (what
+    Kubric's records hold exactly; `BoxLift`). Raises ValueError when a layer is missing.
     """
     missing = [name for name in ("depth", "segmentation", "object_to_world")
                if getattr(scene, name) is None]
@@ -298,16 +354,10 @@ def tapvid_kubric_tracks(scene, seed, num_tracks: int = 256) -> Tracks:
         **{**TAPVID_KUBRIC_TRACKS, "num_points": num_tracks}))
     return point_tracks(scene.depth, scene.segmentation, scene.intrinsics, scene.cam_to_world,
                         scene.object_to_world, np.random.default_rng(seed), cfg,
-                        float(scene.meta["mobility_threshold"]), exact_kubric=True)
+                        float(scene.meta["mobility_threshold"]), exact_kubric=True,
+                        box_lift=box_lift)
 
 
-# Box corner order (8,3) of 0/1 = min/max per axis: x slowest, then y, then z (Kubric's order).
-BOX_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-
-
-def box_corners(boxes: np.ndarray) -> np.ndarray:
-    """(K,8,3) corners of axis-aligned boxes (K,2,3) given as (min, max) corners."""
-    return boxes[:, BOX_CORNERS, np.arange(3)]
 
 
 def segment_boxes(segmentation: np.ndarray, num_objects: int) -> tuple[np.ndarray, np.ndarray]:

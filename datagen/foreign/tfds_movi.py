@@ -47,7 +47,10 @@ What each feature becomes (our conventions, docs/FORMAT.md):
   pixel counts are at the render resolution, not the record's.
 - Tracks: the records have none; they are drawn as TAP-Vid-Kubric draws them
   (`datagen.annotate.tapvid_kubric_tracks`: 256 tracks on a stride-4 grid, at most 10 % of a
-  segment's grid points, 1 % depth tolerance), seeded by [options.seed, unit.index].
+  segment's grid points, 1 % depth tolerance), seeded by [options.seed, unit.index]. As there,
+  a background query is lifted to 3-D from the depth and an object query from its
+  `object_coordinates` in the object's `instances/bboxes_3d` (`datagen.annotate.BoxLift`; the
+  16-bit depth alone leaves object tracks up to 0.05 px off Kubric's, docs/RESULTS.md 7.1).
 - moving: by `options.mobility_rule` ("point": the track's world displacement since the previous
   frame > 0.01, our label; "object": its object's position change > 0.01, the paper appendix's
   rule), `datagen.foreign.ReadOptions`.
@@ -66,7 +69,7 @@ import json
 import logging
 import re
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -76,7 +79,7 @@ import numpy as np
 
 from c4d_core import geometry
 from c4d_core.errors import UserError
-from datagen.annotate import tapvid_kubric_tracks
+from datagen.annotate import BoxLift, tapvid_kubric_tracks
 from datagen.export.kubric import euclidean_range
 from datagen.foreign import ReadOptions, Unit, mobility_labels
 from datagen.foreign.kubric_worker import camera_from_kubric, decode_range, pose_from_kubric
@@ -411,6 +414,27 @@ def _png(frame: bytes, name: str, feature: str, dtype: type, channels: int) -> n
     return image[..., 2::-1] if channels == 3 else image[..., :channels]
 
 
+class LazyFrames:
+    """Frames (T,H,W,C) indexed by integer arrays [t, y, x] (N,) -> (N,C), decoding only the
+    frames in t, each once: `decode(t)` gives frame t (H,W,C)."""
+
+    def __init__(self, decode: Callable[[int], np.ndarray]):
+        self.decode, self.decoded = decode, {}
+
+    def __getitem__(self, index: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+        t, y, x = (np.asarray(i) for i in index)
+        out = None
+        for frame in np.unique(t):
+            if frame not in self.decoded:
+                self.decoded[frame] = self.decode(int(frame))
+            image = self.decoded[frame]
+            if out is None:
+                out = np.empty(t.shape + image.shape[2:], image.dtype)
+            at = t == frame
+            out[at] = image[y[at], x[at]]
+        return out
+
+
 class Record:
     """The features of one record and their decoding, errors naming the record."""
 
@@ -461,6 +485,23 @@ class Record:
             out[t] = frame
         return out
 
+    def lazy_frames(self, key: str, dtype: type, channels: int, shape: tuple[int, int, int],
+                    low: float, high: float) -> LazyFrames:
+        """An image feature's frames decoded on first use, v / 65535 (high - low) + low
+        (`decode_range`): for a layer read only at a few frames. `shape` (T, H, W) to match."""
+        pngs = self.values(key)
+        if len(pngs) != shape[0]:
+            raise UserError(f"{self.name}: feature {key!r} holds {len(pngs)} frames, the video "
+                            f"{shape[0]}")
+
+        def decode(t: int) -> np.ndarray:
+            frame = _png(pngs[t], self.name, key, dtype, channels)
+            if frame.shape[:2] != shape[1:]:
+                raise UserError(f"{self.name}: {key!r} frames are {frame.shape[:2]}, the "
+                                f"video's {shape[1:]}")
+            return decode_range(frame, low, high)
+        return LazyFrames(decode)
+
     def scalar(self, key: str, default=None):
         if key not in self.features:
             return default
@@ -495,6 +536,20 @@ def _objects(record: Record, count: int) -> list[dict]:
             objects[k][ours] = (value.decode("utf-8") if isinstance(value, bytes)
                                 else bool(value) if key == "is_dynamic" else value.item())
     return objects
+
+
+def _box_lift(record: Record, layers: dict, count: int, shape: tuple[int, int, int]
+              ) -> BoxLift | None:
+    """Object points lifted from `object_coordinates` in `instances/bboxes_3d`, as
+    TAP-Vid-Kubric lifts them (exact, where the records' 16-bit depth is not); None where the
+    record lacks either (then from depth)."""
+    if not (record.has("object_coordinates") and record.has("instances/bboxes_3d")):
+        return None
+    boxes = record.values("instances/bboxes_3d", count * shape[0] * 24)
+    coordinates = layers.get("object_coordinates")
+    if coordinates is None:  # not wanted whole: only the query frames are decoded
+        coordinates = record.lazy_frames("object_coordinates", np.uint16, 3, shape, 0.0, 1.0)
+    return BoxLift(coordinates, boxes.reshape(count, shape[0], 8, 3).astype(np.float64))
 
 
 def decode_record(data: bytes, unit: Unit, options: ReadOptions) -> Scene:
@@ -579,7 +634,8 @@ def decode_record(data: bytes, unit: Unit, options: ReadOptions) -> Scene:
         tracks_world=None, displacement=None, moving=None,
         normal=layers.get("normal"), object_coordinates=layers.get("object_coordinates"),
         meta=meta)
-    drawn = tapvid_kubric_tracks(scene, [options.seed, unit.index], NUM_TRACKS)
+    drawn = tapvid_kubric_tracks(scene, [options.seed, unit.index], NUM_TRACKS,
+                                 _box_lift(record, layers, count, (num_frames,) + size))
     return replace(scene, tracks=drawn.tracks, occluded=drawn.occluded,
                    query_frame=drawn.query_frame, track_object=drawn.track_object,
                    tracks_world=drawn.tracks_world, displacement=drawn.displacement,
