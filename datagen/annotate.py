@@ -343,13 +343,17 @@ def tapvid_kubric_tracks(scene, seed, num_tracks: int = 256,
     Needs the scene's depth, segmentation, cameras and object poses (datagen shards, or a reader
     of Kubric's data); its mobility threshold is `scene.meta['mobility_threshold']` (world units
     a frame). `seed`: an int or a sequence of ints for `np.random.default_rng` (e.g. [seed,
-    video index]); `box_lift`: lift object points from object coordinates and 3-D boxes (what
-    Kubric's records hold exactly; `BoxLift`). Raises ValueError when a layer is missing.
+    video index]). Object points are lifted from their object coordinates in their 3-D boxes
+    (`BoxLift`, as TAP-Vid-Kubric lifts them: what Kubric's records hold exactly) where the
+    scene has both layers (`object_coordinates`, `instances`) or `box_lift` is given, else
+    from depth. Raises ValueError when a layer is missing.
     """
     missing = [name for name in ("depth", "segmentation", "object_to_world")
                if getattr(scene, name) is None]
     if missing:
         raise ValueError(f"drawing TAP-Vid-Kubric tracks needs the scene's {', '.join(missing)}")
+    if box_lift is None and scene.object_coordinates is not None and scene.instances is not None:
+        box_lift = BoxLift(scene.object_coordinates, scene.instances["bbox_3d"])
     cfg = types.SimpleNamespace(tracks=types.SimpleNamespace(
         **{**TAPVID_KUBRIC_TRACKS, "num_points": num_tracks}))
     return point_tracks(scene.depth, scene.segmentation, scene.intrinsics, scene.cam_to_world,

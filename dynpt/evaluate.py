@@ -7,8 +7,10 @@ Sources: datagen shards (a directory, shard or glob) or TAP-Vid DAVIS / Kinetics
     TAP-Vid benchmark's 'first' or 'strided' mode;
   - `c4d-paper`, the paper's D-ACC protocol (its sec. 4: 24-frame 256x256 Kubric videos, 256
     tracks): the first 24 frames, 256 tracks drawn afresh from the scene's depth, segmentation and
-    poses exactly as TAP-Vid-Kubric draws them (`datagen.annotate.tapvid_kubric_tracks`, seeded
-    by `eval.seed` and the video's index), video and tracks resized to 256x256; each track is
+    poses (object points from their object coordinates and 3-D boxes where the scene has them, as
+    in Kubric's records) exactly as TAP-Vid-Kubric draws them
+    (`datagen.annotate.tapvid_kubric_tracks`, seeded by `eval.seed` and the video's index), video
+    and tracks resized to 256x256; each track is
     queried at its drawn point and scored on every other frame (the 'strided' rule).
 TAP-Vid metrics are computed per video and averaged over videos. D-ACC pools every (query, frame)
 pair of the source, except the query frame itself, and is also reported separately on
@@ -46,7 +48,7 @@ EVAL_FIELDS = ("rgb", "tracks", "occluded", "moving", "meta", "track_object", "o
 # The paper's D-ACC protocol: video length and size, tracks per video; the layers it draws from.
 PAPER_FRAMES, PAPER_RESOLUTION, PAPER_TRACKS = 24, (256, 256), 256
 PAPER_FIELDS = ("rgb", "meta", "objects", "depth", "segmentation", "intrinsics", "cam_to_world",
-                "object_to_world")
+                "object_to_world", "object_coordinates", "instances")
 TRACK_KINDS = ("background", "resting object", "tossed object")  # values of an item's `track_kind`
 TABLE_KEYS = {  # summary key -> column title; values are shown in percent
     "d_acc": "D-ACC", "d_acc_moving": "D-ACC moving", "d_acc_static": "D-ACC static",
@@ -102,7 +104,10 @@ def paper_item(scene, index: int, eval_cfg) -> dict:
     scene = dataclasses.replace(
         scene, rgb=scene.rgb[:t], depth=scene.depth[:t], segmentation=scene.segmentation[:t],
         intrinsics=scene.intrinsics[:t], cam_to_world=scene.cam_to_world[:t],
-        object_to_world=scene.object_to_world[:, :t])
+        object_to_world=scene.object_to_world[:, :t],
+        object_coordinates=None if scene.object_coordinates is None else scene.object_coordinates[:t],
+        instances=None if scene.instances is None  # what the drawing reads of them
+        else {"bbox_3d": scene.instances["bbox_3d"][:, :t]})
     drawn = tapvid_kubric_tracks(scene, [int(eval_cfg.seed), index], PAPER_TRACKS)
     moving = mobility_labels(drawn, scene.object_to_world, options_from(eval_cfg, eval_cfg.seed))
     clip = {"rgb": scene.rgb, "tracks": swap_track_axes(drawn.tracks),

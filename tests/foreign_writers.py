@@ -182,10 +182,7 @@ def movi_features(scene: Scene, omit: tuple[str, ...] = ()) -> dict:
         "camera/quaternions": geometry.matrix_to_quat(camera_rotation).astype(np.float32),
         "instances/positions": poses[..., :3, 3].astype(np.float32),
         "instances/quaternions": geometry.matrix_to_quat(poses[..., :3, :3]).astype(np.float32),
-        "instances/velocities": np.zeros((k, t, 3), np.float32),
-        "instances/angular_velocities": np.zeros((k, t, 3), np.float32),
-        "instances/bboxes_3d": (scene.instances["bbox_3d"] if scene.instances is not None
-                                else np.zeros((k, t, 8, 3), np.float32)),
+        **instance_features(scene),
         "instances/visibility": np.stack([(scene.segmentation == i + 1).sum(axis=(1, 2))
                                           for i in range(k)]).reshape(k, t),
         "instances/asset_id": [str(o.get("asset_id", i)).encode() for i, o in enumerate(scene.objects)],
@@ -219,6 +216,24 @@ def movi_features(scene: Scene, omit: tuple[str, ...] = ()) -> dict:
         features["object_coordinates"] = [png_bytes(f) for f in quantise(
             np.clip(scene.object_coordinates, 0, 1), 0, 1, False)]
     return {key: value for key, value in features.items() if key not in omit}
+
+
+def instance_features(scene: Scene) -> dict[str, np.ndarray]:
+    """The per-frame `instances/*` features of MOVi: the scene's where it has `instances`, zeros
+    where not (K,T,...); image positions as Kubric stores them, (x, y) normalised by the image's
+    width and height with pixel edges at integers."""
+    k, t = len(scene.objects), scene.num_frames
+    h, w = scene.image_size
+    inst = scene.instances
+    if inst is None:
+        return {"instances/velocities": np.zeros((k, t, 3), np.float32),
+                "instances/angular_velocities": np.zeros((k, t, 3), np.float32),
+                "instances/bboxes_3d": np.zeros((k, t, 8, 3), np.float32),
+                "instances/image_positions": np.zeros((k, t, 2), np.float32)}
+    return {"instances/velocities": inst["velocity"],
+            "instances/angular_velocities": inst["angular_velocity"],
+            "instances/bboxes_3d": inst["bbox_3d"],
+            "instances/image_positions": ((inst["image_position"] + 0.5) / [w, h]).astype(np.float32)}
 
 
 def write_tfds_movi(root: Path, scenes: list[Scene], name: str = "movi_e", config: str | None = None,

@@ -58,7 +58,9 @@ def in_kubric_order(scene, order: np.ndarray):
     relabel[order + 1] = np.arange(1, len(order) + 1)
     return dataclasses.replace(scene, segmentation=relabel[scene.segmentation],
                                object_to_world=scene.object_to_world[order],
-                               objects=[scene.objects[k] for k in order])
+                               objects=[scene.objects[k] for k in order],
+                               instances=None if scene.instances is None else
+                               {key: value[order] for key, value in scene.instances.items()})
 
 
 def test_detect_and_units(exported, tmp_path):

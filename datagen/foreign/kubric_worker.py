@@ -260,6 +260,12 @@ def intrinsics_from_kubric(k_normalised: np.ndarray, height: int, width: int) ->
                      [0.0, 0.0, 1.0]])
 
 
+def pixels_from_kubric(positions: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Our pixel (x, y) (...,2), pixel centres at integers, of Kubric's image positions (...,2):
+    (x, y) normalised by the image's width and height, pixel edges at integers."""
+    return np.asarray(positions) * [width, height] - 0.5
+
+
 def pose_from_kubric(positions: np.ndarray, quaternions: np.ndarray) -> np.ndarray:
     """(...,4,4) float64 poses of Kubric's positions (...,3) and (w,x,y,z) quaternions (...,4)."""
     return make_pose(quat_to_matrix(np.asarray(quaternions, np.float64)), positions)
@@ -328,7 +334,8 @@ def _instances(instances: list[dict], path: Path, num_frames: int, height: int, 
         values["bbox_3d"].append(array("bboxes_3d", (t, 8, 3)))
         values["bbox_2d"].append(box)
         values["visible_pixels"].append(array("visibility", (t,)))
-        values["image_position"].append(array("image_positions", (t, 2)) * [width, height] - 0.5)
+        values["image_position"].append(pixels_from_kubric(array("image_positions", (t, 2)),
+                                                           height, width))
         values["velocity"].append(array("velocities", (t, 3)))
         values["angular_velocity"].append(array("angular_velocities", (t, 3)))
         values["is_dynamic"].append(bool(_field(inst, path, "is_dynamic", where=where)))

@@ -43,8 +43,9 @@ What each feature becomes (our conventions, docs/FORMAT.md):
   frame beyond each end, so every frame's flow is valid (`meta["flow_*_valid"]` all True).
 - normal = v / 65535 * 2 - 1 (world space); object_coordinates = v / 65535.
 - objects[k]: asset_id, category (the class index), scale, mass, friction, restitution and
-  tossed = is_dynamic, where the record has them. `instances` and `events` are left None: their
-  pixel counts are at the render resolution, not the record's.
+  tossed = is_dynamic, where the record has them. `instances` (`INSTANCE_KEYS`): 3-D boxes,
+  image positions, velocities and is_dynamic from `instances/*`, the pixel counts and 2-D boxes
+  counted on the record's segmentation (Kubric's are at its render resolution); `events` None.
 - Tracks: the records have none; they are drawn as TAP-Vid-Kubric draws them
   (`datagen.annotate.tapvid_kubric_tracks`: 256 tracks on a stride-4 grid, at most 10 % of a
   segment's grid points, 1 % depth tolerance), seeded by [options.seed, unit.index]. As there,
@@ -79,11 +80,12 @@ import numpy as np
 
 from c4d_core import geometry
 from c4d_core.errors import UserError
-from datagen.annotate import BoxLift, tapvid_kubric_tracks
+from datagen.annotate import BoxLift, segment_boxes, tapvid_kubric_tracks
 from datagen.export.kubric import euclidean_range
 from datagen.foreign import ReadOptions, Unit, mobility_labels
-from datagen.foreign.kubric_worker import camera_from_kubric, decode_range, pose_from_kubric
-from datagen.scene import OPTIONAL_LAYERS, Scene
+from datagen.foreign.kubric_worker import (camera_from_kubric, decode_range, pixels_from_kubric,
+                                           pose_from_kubric)
+from datagen.scene import INSTANCE_KEYS, OPTIONAL_LAYERS, Scene
 
 log = logging.getLogger(__name__)
 
@@ -538,6 +540,33 @@ def _objects(record: Record, count: int) -> list[dict]:
     return objects
 
 
+INSTANCE_FEATURES = ("bboxes_3d", "image_positions", "velocities", "angular_velocities",
+                     "is_dynamic")
+
+
+def _instances(record: Record, segmentation: np.ndarray, count: int
+               ) -> dict[str, np.ndarray] | None:
+    """`Scene.instances` (INSTANCE_KEYS) of the record's `instances/*` features: 3-D boxes, image
+    positions, velocities, is_dynamic; pixel counts and 2-D boxes counted on the record's own
+    segmentation (K,T) (Kubric's are at its render resolution). None where a feature is missing."""
+    if not all(record.has(f"instances/{key}") for key in INSTANCE_FEATURES):
+        return None
+    num_frames, height, width = segmentation.shape
+
+    def per_frame(key: str, *tail: int) -> np.ndarray:
+        size = count * num_frames * int(np.prod(tail))
+        return record.values(f"instances/{key}", size).reshape((count, num_frames) + tail)
+    visible, boxes_2d = segment_boxes(segmentation, count)
+    values = {"bbox_3d": per_frame("bboxes_3d", 8, 3), "bbox_2d": boxes_2d,
+              "visible_pixels": visible,
+              "image_position": pixels_from_kubric(per_frame("image_positions", 2), height, width),
+              "velocity": per_frame("velocities", 3),
+              "angular_velocity": per_frame("angular_velocities", 3),
+              "is_dynamic": record.values("instances/is_dynamic", count).astype(bool)}
+    return {key: np.ascontiguousarray(values[key], dtype)
+            for key, (dtype, _) in INSTANCE_KEYS.items()}
+
+
 def _box_lift(record: Record, layers: dict, count: int, shape: tuple[int, int, int]
               ) -> BoxLift | None:
     """Object points lifted from `object_coordinates` in `instances/bboxes_3d`, as
@@ -603,6 +632,10 @@ def decode_record(data: bytes, unit: Unit, options: ReadOptions) -> Scene:
     if options.wants("object_coordinates") and record.has("object_coordinates"):
         layers["object_coordinates"] = decode_range(
             record.frames("object_coordinates", np.uint16, 3, size), 0.0, 1.0)
+    if options.wants("instances"):
+        instances = _instances(record, segmentation, count)
+        if instances is not None:
+            layers["instances"] = instances
 
     name = record.scalar("metadata/video_name", str(unit.index))
     file_name = RECORD_NAME.match(Path(unit.path).name)
@@ -633,7 +666,7 @@ def decode_record(data: bytes, unit: Unit, options: ReadOptions) -> Scene:
         query_frame=np.zeros(0, np.int32), track_object=np.zeros(0, np.int32),
         tracks_world=None, displacement=None, moving=None,
         normal=layers.get("normal"), object_coordinates=layers.get("object_coordinates"),
-        meta=meta)
+        instances=layers.get("instances"), meta=meta)
     drawn = tapvid_kubric_tracks(scene, [options.seed, unit.index], NUM_TRACKS,
                                  _box_lift(record, layers, count, (num_frames,) + size))
     return replace(scene, tracks=drawn.tracks, occluded=drawn.occluded,
