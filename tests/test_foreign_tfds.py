@@ -342,7 +342,7 @@ def test_object_tracks_of_records_are_lifted_through_their_boxes(tmp_path):
     object queries through the box, as TAP-Vid-Kubric does, so their tracks are those of the
     original scene within 1e-3 px (from the 16-bit depth they are not)."""
     from datagen.generate import generate_scene
-    from dynpt.evaluate import PAPER_TRACKS, load_source
+    from dynpt.evaluate import PAPER_FIELDS, PAPER_TRACKS, load_source
 
     cfg = load_config("datagen", "movi-e", overrides=[
         "resolution=[64,64]", "frames=24", "objects.num_static=[3,3]", "objects.num_tossed=[2,2]",
@@ -359,6 +359,8 @@ def test_object_tracks_of_records_are_lifted_through_their_boxes(tmp_path):
     from_depth = replace(scene, object_coordinates=None, instances=None)  # the 16-bit depth lift
     coarse = tapvid_kubric_tracks(from_depth, [SEED, 0], PAPER_TRACKS)
     assert np.abs(coarse.tracks[on_object] - exact.tracks[on_object]).max() > 1e-3
+    unread = read_unit(source_units(tmp_path)[0], ReadOptions(seed=SEED, fields=PAPER_FIELDS))
+    assert unread.tracks.shape[0] == 0  # the protocol draws its own: the reader draws none
     paper, _ = load_source(str(tmp_path), eval_config("eval.protocol=c4d-paper", f"eval.seed={SEED}"))
     scale = 256 / 64  # the protocol's 256x256 from the record's 64x64, pixel centres kept
     expected = (exact.tracks[on_object] + 0.5) * scale - 0.5  # (n,T,2)

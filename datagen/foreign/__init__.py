@@ -38,7 +38,8 @@ A reader module M (named in `READERS`) exposes:
         The scene of `unit` (exactly one) in our conventions (docs/FORMAT.md): OpenCV cameras,
         z-depth, pixel centres at integer coordinates, flow as (dx, dy). Where the data has no
         tracks of its own they are drawn by TAP-Vid-Kubric's recipe, seeded by
-        [options.seed, unit.index]; `options.fields` names the fields the caller needs (the rest
+        [options.seed, unit.index], unless `options.fields` leaves out "tracks" (then the scene
+        has none); `options.fields` names the fields the caller needs (the rest
         may be None), `options.mobility_rule` how `moving` is labelled where the data allows a
         choice. A damaged or incomplete unit (or one with a `problem`) raises `UserError` naming
         the file, the record or folder and what is wrong; whether it is skipped is the caller's

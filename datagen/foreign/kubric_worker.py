@@ -446,6 +446,8 @@ def read_scene(folder: str | Path, index: int = 0, options: ReadOptions = ReadOp
         tracks_world=None, displacement=None, moving=None, normal=decoded.get("normal"),
         object_coordinates=decoded.get("object_coordinates"), instances=decoded.get("instances"),
         events=decoded.get("events"), meta=meta)
+    if not options.wants("tracks"):  # the caller draws its own (the paper protocol)
+        return scene
     drawn = tapvid_kubric_tracks(scene, [options.seed, index], NUM_TRACKS)  # from the layers above
     return dataclasses.replace(
         scene, tracks=drawn.tracks, occluded=drawn.occluded, query_frame=drawn.query_frame,

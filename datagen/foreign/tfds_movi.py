@@ -667,6 +667,8 @@ def decode_record(data: bytes, unit: Unit, options: ReadOptions) -> Scene:
         tracks_world=None, displacement=None, moving=None,
         normal=layers.get("normal"), object_coordinates=layers.get("object_coordinates"),
         instances=layers.get("instances"), meta=meta)
+    if not options.wants("tracks"):  # the caller draws its own (the paper protocol)
+        return scene
     drawn = tapvid_kubric_tracks(scene, [options.seed, unit.index], NUM_TRACKS,
                                  _box_lift(record, layers, count, (num_frames,) + size))
     return replace(scene, tracks=drawn.tracks, occluded=drawn.occluded,
