@@ -116,13 +116,22 @@ def static_points(tracks, t: int, cfg: MotionMaskConfig = MotionMaskConfig()) ->
     return xy[static].astype(np.float64)
 
 
+REMAP_COLUMNS = 1024  # cv2.remap's maps are images of fewer than 32767 rows and columns
+
+
 def sample_flow(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Bilinear flow (H,W,2) at points xy (M,2) -> (M,2); points outside use the nearest edge."""
-    if len(xy) == 0:
+    count = len(xy)
+    if count == 0:
         return np.zeros((0, 2))
-    map_xy = xy.astype(np.float32)[None]  # (1,M,2)
-    sampled = cv2.remap(flow.astype(np.float32), map_xy[..., 0], map_xy[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return sampled[0].astype(np.float64)  # (M,2)
+    columns = min(count, REMAP_COLUMNS)
+    rows = -(-count // columns)
+    map_xy = np.zeros((rows * columns, 2), np.float32)
+    map_xy[:count] = xy
+    map_xy = map_xy.reshape(rows, columns, 2)  # the points as an image of rows x columns
+    sampled = cv2.remap(flow.astype(np.float32), map_xy[..., 0], map_xy[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE)
+    return sampled.reshape(-1, 2)[:count].astype(np.float64)  # (M,2)
 
 
 def sampson_distance(fundamental: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:

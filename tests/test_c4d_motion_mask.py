@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from c4d_core.errors import UserError
+from c4d_core.geometry import pixel_grid
 from c4d_pipeline.eval_metrics import mask_iou
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.ground_truth import GroundTruthPointmaps, ground_truth_motion_masks, oracle_tracks
@@ -205,3 +206,23 @@ def test_opening_removes_specks_and_closing_fills_holes(scene, graph):
     cleaned = correspondence_motion_masks(tracks, speck, pairs, replace(MotionMaskConfig(), open_px=3, close_px=3)).masks
     assert plain[:, 35, 8].any() and not cleaned[:, 35, 8].any()
     assert mask_iou(cleaned, truth)["iou"] > 0.9
+
+
+def test_flow_is_sampled_at_any_number_of_points():
+    """cv2.remap's maps hold fewer than 32767 columns: the forward-backward check of a 256x256
+    pair samples 65,536 points, and a rotation's flow and its inverse cancel there."""
+    from c4d_pipeline.motion_mask import forward_backward_error, sample_flow
+
+    height = width = 256
+    grid = pixel_grid(height, width)  # (H,W,2)
+    centre = np.array([(width - 1) / 2, (height - 1) / 2])
+    angle = np.deg2rad(2.0)
+    rotate = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    forward = (grid - centre) @ rotate.T + centre - grid  # (H,W,2)
+    back = (grid - centre) @ rotate + centre - grid  # the inverse rotation's flow
+    error = forward_backward_error(forward, back)  # (H,W)
+    inside = np.all((grid + forward > 0) & (grid + forward < width - 1), axis=-1)
+    assert error.shape == (height, width) and np.abs(error[inside]).max() < 1e-3
+    xy = np.random.default_rng(0).uniform(0, width - 1, (40_000, 2))  # not a multiple of the rows
+    exact = (xy - centre) @ rotate.T + centre - xy
+    assert np.abs(sample_flow(forward, xy) - exact).max() < 1e-3
