@@ -327,6 +327,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "pointmaps.precision": text("fp32", "bf16"),
         "tracker.checkpoint": text(), "tracker.grid_size": COUNT,
         "graph.window": COUNT, "graph.stride": COUNT, "graph.start": COUNT, "graph.symmetric": flag(),
+        "window.frames": POSITIVE, "window.overlap": COUNT, "window.joint_iters": POSITIVE,
         "gt_pointmaps.depth_noise": number(0.0), "gt_pointmaps.smooth_noise": number(0.0),
         "gt_pointmaps.smooth_cells": COUNT, "gt_pointmaps.scale_range": number(1.0),
         "gt_pointmaps.conf_max": number(1.0), "gt_pointmaps.static_bias": flag(),

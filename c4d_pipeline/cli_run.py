@@ -9,7 +9,8 @@ anything is written; OUT keeps the resolved config as `config.yaml`.
 Reconstructs a monocular video with C4D: DUSt3R preprocessing of the frames, pairwise pointmaps
 from a DUSt3R/MASt3R/MonST3R checkpoint, optical flow, DynPT tracks (or, without a tracker, the
 flow-only motion mask and no trajectory smoothing), the two-stage optimisation, and the output
-files of the contract (docs/FORMAT.md). Every checkpoint is read and checked before the video is
+files of the contract (docs/FORMAT.md); with `--window FRAMES`, window by window in bounded memory
+(`c4d_pipeline.windows`). Every checkpoint is read and checked before the video is
 touched, so a wrong path fails in seconds, not after the network has run.
 """
 
@@ -37,6 +38,7 @@ RUN_FLAGS = {"pointmaps": "pointmaps.checkpoint", "tracker": "tracker.checkpoint
              "size": "pointmaps.size", "stride": "video.stride", "max_frames": "video.max_frames",
              "grid_size": "tracker.grid_size", "pointmap_batch": "pointmaps.batch",
              "intrinsics": "intrinsics.known", "intrinsics_mode": "intrinsics.mode",
+             "window": "window.frames", "window_overlap": "window.overlap",
              "threads": "threads"}  # --threads: c4d.cli's flag of every subcommand
 
 
@@ -64,6 +66,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--intrinsics-mode", choices=["fixed", "init"],
                         help="fixed: known intrinsics are not optimised; init: the focal starts there "
                         "and is optimised (key intrinsics.mode) [fixed]")
+    parser.add_argument("--window", type=int, metavar="FRAMES",
+                        help="reconstruct long videos in overlapping windows of FRAMES frames joined by "
+                        "Sim(3), memory bounded by FRAMES, not by the video's length (key window.frames; "
+                        "0: the whole video at once) [0]")
+    parser.add_argument("--window-overlap", type=int, metavar="N",
+                        help="frames shared by neighbouring windows, at least the scene graph's longest "
+                        "pair (key window.overlap) [10]")
     parser.add_argument("--grid-size", type=int, help="tracker query grid cell in pixels (a max-gradient "
                         "+ a random point per cell; key tracker.grid_size) [20]")
     parser.add_argument("--pointmap-batch", type=int, help="image pairs per network pass (0 = from "
@@ -116,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
     from c4d_pipeline.pipeline import reconstruct
     from c4d_pipeline.scene_graph import graph_from_config
     from c4d_pipeline.video_input import load_video_input, network_intrinsics, read_intrinsics
+    from c4d_pipeline.windows import plan_windows, reconstruct_windowed
     from dynpt.device import device_for
 
     # 1. Everything the user named, checked before any heavy work.
@@ -162,6 +172,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.video} gives {T} frame(s) at video.stride={cfg.video.stride} (--stride); "
                         "a reconstruction needs at least 2: lower the stride or use a longer video")
     graph_from_config(T, cfg.graph)  # a graph that does not connect the frames: refused here
+    if cfg.window.frames:  # windows that cannot hold that graph: refused here too
+        plan_windows(T, cfg.window.frames, cfg.window.overlap, cfg.graph)
     intrinsics = None if known is None else network_intrinsics(
         known, video, read_whole=not cfg.video.max_frames or T < cfg.video.max_frames)  # (T,4)
 
@@ -189,8 +201,9 @@ def run(args: argparse.Namespace) -> int:
             "crop_xy": list(video.preprocessing.crop_xy),
             "seconds_before_reconstruction": seconds,
         }
-        rec = reconstruct(frames, source, flow, tracks, cfg, stage, inputs={**inputs, "fps": video.fps},
-                          timestamps=video.timestamps, intrinsics=intrinsics)
+        rec = (reconstruct_windowed if cfg.window.frames else reconstruct)(
+            frames, source, flow, tracks, cfg, stage, inputs={**inputs, "fps": video.fps},
+            timestamps=video.timestamps, intrinsics=intrinsics)
     stage_seconds = rec.report["seconds"]
     log.info("wrote %s (%s)", out, ", ".join(f"{k} {v:.1f}s" for k, v in {**seconds, **stage_seconds}.items()))
     return 0

@@ -14,7 +14,9 @@ OUT/
   report.json                inputs, config, per-stage seconds, loss curves, versions
   config.yaml                the resolved config (`c4d run` writes it before the reconstruction starts)
 Every file is first written under a temporary name and then renamed, so an interrupted run never
-leaves a half-written file under a final name.
+leaves a half-written file under a final name. `write_frame`, `write_npz_frames` and `PlyStream`
+write the same files a frame at a time, for reconstructions that are never whole in memory
+(`c4d_pipeline.windows`).
 
 `read_reconstruction` reads it back: strictly for scoring, tolerantly (listing what is missing or
 inconsistent) for `c4d inspect`. scene.ply is written here (`_ply_bytes`: x y z float32, red green
@@ -27,6 +29,8 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -76,18 +80,18 @@ class Reconstruction:
         return None
 
 
-def _save_png(path: Path, image: np.ndarray) -> None:
+def save_png(path: Path, image: np.ndarray) -> None:
     with atomic_path(path) as tmp:
         Image.fromarray(image).save(tmp, format="PNG")
 
 
-def _save_npy(path: Path, array: np.ndarray) -> None:
+def save_npy(path: Path, array: np.ndarray) -> None:
     buffer = io.BytesIO()  # numpy's own writes to a file report a full disk without an errno
     np.save(buffer, array)
     write_bytes(path, buffer.getvalue())
 
 
-def _save_npz(path: Path, **arrays: np.ndarray) -> None:
+def save_npz(path: Path, **arrays: np.ndarray) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
 
@@ -114,30 +118,89 @@ def read_tum(path: Path) -> np.ndarray:
     return geometry.make_pose(geometry.quat_to_matrix(quat), rows[:, 1:4])
 
 
+def frame_ply_points(points: np.ndarray, confidence: np.ndarray, dynamic: np.ndarray, colours: np.ndarray,
+                     static_frame: bool, pixel_stride: int = 2,
+                     min_confidence: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's points (M,3) float32 and colours (M,3) uint8 for scene.ply: on a grid of every
+    `pixel_stride`-th pixel, above `min_confidence`, the dynamic pixels, and the static ones too
+    where `static_frame`. points float (H,W,3) world, confidence (H,W), dynamic bool (H,W),
+    colours uint8 (H,W,3)."""
+    sub = (slice(None, None, pixel_stride), slice(None, None, pixel_stride))
+    moving = dynamic[sub]
+    sel = (confidence[sub] >= min_confidence) & (moving | (~moving & static_frame))
+    return points[sub][sel].astype(np.float32), colours[sub][sel]
+
+
 def ply_points(rec: Reconstruction, pixel_stride: int = 2, static_frame_stride: int = 5,
                min_confidence: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Points (M,3) float32 and colours (M,3) uint8 for scene.ply: static pixels of every
     `static_frame_stride`-th frame (the background, once) and the dynamic pixels of every frame,
-    both on a grid of every `pixel_stride`-th pixel, above `min_confidence`."""
-    sub = (slice(None), slice(None, None, pixel_stride), slice(None, None, pixel_stride))
-    keep = rec.confidence[sub] >= min_confidence  # (T,h,w)
-    dynamic = rec.masks[sub]
-    static_frames = np.zeros(rec.num_frames, bool)
-    static_frames[::static_frame_stride] = True
-    sel = keep & (dynamic | (~dynamic & static_frames[:, None, None]))
-    return rec.points[sub][sel].astype(np.float32), rec.frames[sub][sel]
+    both on a grid of every `pixel_stride`-th pixel, above `min_confidence` (`frame_ply_points`
+    of every frame, in order)."""
+    parts = [frame_ply_points(rec.points[t], rec.confidence[t], rec.masks[t], rec.frames[t],
+                              t % static_frame_stride == 0, pixel_stride, min_confidence)
+             for t in range(rec.num_frames)]
+    return np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts])
+
+
+def _ply_header(count: int) -> bytes:
+    return ("ply\nformat binary_little_endian 1.0\n"
+            f"element vertex {count}\n"
+            "property float x\nproperty float y\nproperty float z\n"
+            "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
+
+
+def _ply_rows(points: np.ndarray, colours: np.ndarray) -> bytes:
+    rows = np.empty(len(points), dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
+    rows["xyz"], rows["rgb"] = points, colours
+    return rows.tobytes()
 
 
 def _ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {len(points)}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    )
-    rows = np.empty(len(points), dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
-    rows["xyz"], rows["rgb"] = points, colours
-    return header.encode() + rows.tobytes()
+    return _ply_header(len(points)) + _ply_rows(points, colours)
+
+
+class PlyStream:
+    """scene.ply written a frame at a time: `add(points (M,3), colours (M,3))` appends rows to a
+    scratch file `body`; leaving the `with` block writes header and rows to `path` atomically
+    (the file `_ply_bytes` writes for the same points) and removes `body`."""
+
+    def __init__(self, path: Path, body: Path):
+        self.path, self.body, self.count = Path(path), Path(body), 0
+
+    def __enter__(self) -> "PlyStream":
+        self._file = open(self.body, "wb")
+        return self
+
+    def add(self, points: np.ndarray, colours: np.ndarray) -> None:
+        self._file.write(_ply_rows(points, colours))
+        self.count += len(points)
+
+    def __exit__(self, kind, value, traceback) -> None:
+        self._file.close()
+        if kind is None:
+            with atomic_path(self.path) as tmp, open(tmp, "wb") as fh, open(self.body, "rb") as body:
+                fh.write(_ply_header(self.count))
+                shutil.copyfileobj(body, fh)
+        self.body.unlink()
+
+
+def write_npz_frames(path: Path, num_frames: int, arrays: dict) -> None:
+    """An .npz file (as `np.savez_compressed` writes: one deflated `NAME.npy` member per array)
+    of float32 arrays (T,...) written a frame at a time, atomically. arrays: {name: (frame shape,
+    a function returning an iterator of the T frames, each float (frame shape))}; the members are
+    written in turn, so each iterator runs once, after the previous one is exhausted."""
+    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+        for name, (shape, frames) in arrays.items():
+            header = {"descr": "<f4", "fortran_order": False, "shape": (num_frames, *shape)}
+            with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array_header_2_0(member, header)
+                count = 0
+                for frame in frames():
+                    member.write(np.ascontiguousarray(frame, "<f4").reshape(shape).tobytes())
+                    count += 1
+            if count != num_frames:
+                raise ValueError(f"{name}: {count} frames written, {num_frames} declared")
 
 
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -170,24 +233,35 @@ def is_reconstruction(path: str | Path) -> bool:
     return path.is_dir() and any((path / name).is_file() for name in MARKER_FILES)
 
 
+def write_frame(out: Path, t: int, frame: np.ndarray, depth: np.ndarray, mask: np.ndarray) -> None:
+    """Frame t's files but the coloured depth: frames/, depth/*.npy, masks/. frame uint8
+    (H,W,3), depth float (H,W), mask bool (H,W) True = dynamic."""
+    save_png(out / "frames" / f"{t:06d}.png", frame)
+    save_npy(out / "depth" / f"{t:06d}.npy", depth.astype(np.float32))
+    save_png(out / "masks" / f"{t:06d}.png", (mask * 255).astype(np.uint8))
+
+
+def read_mask(out: Path, t: int) -> np.ndarray:
+    """bool (H,W) motion mask of frame t written by `write_frame` (True = dynamic)."""
+    return _read_images([out / "masks" / f"{t:06d}.png"], cv2.IMREAD_GRAYSCALE)[0] > 127
+
+
 def write_reconstruction(rec: Reconstruction, out_dir: str | Path, ply_pixel_stride: int = 2,
                          ply_static_frame_stride: int = 5, ply_min_confidence: float = 1.0) -> Path:
     """Write every file of the output table into `out_dir` (created); returns its path."""
     out = Path(out_dir)
     depth_rgb = colorize_depth(rec.depth)  # one colour range for the whole video, not per frame
     for t in range(rec.num_frames):
-        _save_png(out / "frames" / f"{t:06d}.png", rec.frames[t])
-        _save_npy(out / "depth" / f"{t:06d}.npy", rec.depth[t].astype(np.float32))
-        _save_png(out / "depth" / f"{t:06d}.png", depth_rgb[t])
-        _save_png(out / "masks" / f"{t:06d}.png", (rec.masks[t] * 255).astype(np.uint8))
+        write_frame(out, t, rec.frames[t], rec.depth[t], rec.masks[t])
+        save_png(out / "depth" / f"{t:06d}.png", depth_rgb[t])
     write_text(out / "poses_tum.txt", tum_lines(rec.cam_to_world.astype(np.float64), rec.timestamps))
-    _save_npy(out / "intrinsics.npy", rec.intrinsics.astype(np.float32))
-    _save_npz(out / "pointmaps.npz", points=rec.points.astype(np.float32),
+    save_npy(out / "intrinsics.npy", rec.intrinsics.astype(np.float32))
+    save_npz(out / "pointmaps.npz", points=rec.points.astype(np.float32),
               confidence=rec.confidence.astype(np.float32))
     if rec.tracks_2d is not None:
-        _save_npz(out / "tracks_2d.npz", **{k: np.asarray(v) for k, v in rec.tracks_2d.items()})
+        save_npz(out / "tracks_2d.npz", **{k: np.asarray(v) for k, v in rec.tracks_2d.items()})
     if rec.tracks_world is not None:
-        _save_npz(out / "tracks_3d.npz", tracks_world=rec.tracks_world.astype(np.float32),
+        save_npz(out / "tracks_3d.npz", tracks_world=rec.tracks_world.astype(np.float32),
                   valid=np.asarray(rec.tracks_valid, bool))
     pts, rgb = ply_points(rec, ply_pixel_stride, ply_static_frame_stride, ply_min_confidence)
     write_bytes(out / "scene.ply", _ply_bytes(pts, rgb))
