@@ -29,6 +29,11 @@ from c4d_pipeline.scene_graph import graph_from_config
 log = logging.getLogger(__name__)
 
 
+def software_versions() -> dict[str, str]:
+    """report.json's `versions`: Python's, torch's and numpy's."""
+    return {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__}
+
+
 def check_frames(frames: np.ndarray) -> None:
     """`UserError` unless frames are uint8 (T,H,W,3)."""
     if not isinstance(frames, np.ndarray) or frames.ndim != 4 or frames.shape[-1] != 3:
@@ -181,8 +186,7 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
         "seconds": seconds,
         "losses": result.history["losses"],
         "pts_frames": result.history.get("pts_frames", 0),
-        "versions": {"python": platform.python_version(), "torch": torch.__version__,
-                     "numpy": np.__version__},
+        "versions": software_versions(),
     }
     rec = Reconstruction(
         frames=frames, depth=result.depth, masks=masks, cam_to_world=result.cam_to_world,

@@ -32,7 +32,6 @@ frames of the video (uint8) and the tracker result are held whole, as the caller
 from __future__ import annotations
 
 import logging
-import platform
 import tempfile
 import time
 from dataclasses import dataclass, replace
@@ -48,7 +47,7 @@ from c4d_core.files import write_json, write_text
 from c4d_core.geometry import unproject_depth_map
 from c4d_pipeline import outputs
 from c4d_pipeline.optimize import check_intrinsics
-from c4d_pipeline.pipeline import check_frames, lift_tracks, reconstruct
+from c4d_pipeline.pipeline import check_frames, lift_tracks, reconstruct, software_versions
 from c4d_pipeline.procrustes import weighted_procrustes
 from c4d_pipeline.scene_graph import graph_from_config, window_offsets
 from c4d_pipeline.scene_params import quat_to_rotation
@@ -272,6 +271,7 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
             view = _WindowView(pointmap_source, flow_estimator, frames, win.start)
             rec = reconstruct(frames[win.start:win.stop], view, view, window_tracks(tracker_result, win.start, win.stop), cfg,
                               intrinsics=None if intrinsics is None else intrinsics[win.start:win.stop])
+            mask_method = rec.report["inputs"]["motion_masks"]  # the same in every window
             for key, value in rec.report["seconds"].items():
                 seconds[key] = seconds.get(key, 0.0) + value
             scale, rot, trans = 1.0, np.eye(3), np.zeros(3)
@@ -322,11 +322,11 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
         "inputs": {"frames": num_frames, "height": h, "width": w,
                    "pointmap_source": type(pointmap_source).__name__,
                    "flow": type(flow_estimator).__name__,
-                   "motion_masks": "dynpt+flow" if tracker_result is not None else "flow-only",
+                   "motion_masks": mask_method,
                    **(inputs or {})},
         "config": to_dict(cfg), "seconds": seconds, "losses": losses,
         "windows": windows_report,
-        "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
+        "versions": software_versions(),
     }
     write_json(out / "report.json", report, indent=1)
     return LongReconstruction(cam_to_world, intrinsics_out, report)
