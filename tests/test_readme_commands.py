@@ -33,7 +33,8 @@ that says why; those run after all the others, so the folder they would write in
 fast test fails if a README line that is run here has no check: a new line needs one or an entry
 in `NO_OUTCOME` with the reason. What the README states that a toy run cannot show (time, disk,
 memory and scores at full size) is measured in docs/PERFORMANCE.md, "README lines: what they
-cost", not here.
+cost", not here; the figures README.md and docs/RESULTS.md give for `make demo` are held to that
+run's records (docs/results/demo/) by tests/test_docs_figures.py.
 """
 
 from __future__ import annotations
