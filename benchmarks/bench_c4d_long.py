@@ -4,8 +4,9 @@
 Inputs as the benchmarks of docs/RESULTS.md: one `c4d datagen --preset movi-e` scene per length
 (`--frames N`, `--resolution HxW`, made once into DATA/fN), ground-truth-source pointmaps with the
 usual noise, per-pair scale and static-world bias (the config's `gt_pointmaps`), DIS flow, and the
-scene's own tracks and mobility labels as the tracker result (`oracle_tracks`: DynPT itself is not
-run here, see docs/perf/c4d_long.md). Every case is one subprocess (peak RSS is per process) that
+scene's own tracks and mobility labels as the tracker result (`oracle_tracks`), or with `--tracker
+CKPT` a trained DynPT's tracks of a grid on frame 0 (as `c4d run` queries), tracked in the case's
+process (its time in `track_s`, its memory in the peak). Every case is one subprocess (peak RSS is per process) that
 reads the scene, calls `windows.reconstruct_windowed` (or `pipeline.reconstruct` for the whole
 video) writing into a temporary folder, and reports wall and CPU seconds, the peak RSS, the RSS
 once the inputs are read (the scene the ground-truth source reads: frames, depth, segmentation,
@@ -18,7 +19,8 @@ weights.pts=0) whole and in windows. Ratios against the smallest windowed run an
 run. Medians over `--repeats` processes per case.
 
     .venv/bin/python benchmarks/bench_c4d_long.py [--frames 90 180 360] [--window 30] [--overlap 10]
-        [--preset tiny] [--resolution 192x256] [--data DIR] [--json OUT.json] [--plot OUT.png] [key=value ...]
+        [--preset tiny] [--resolution 192x256] [--data DIR] [--tracker CKPT] [--json OUT.json] [--plot OUT.png]
+        [key=value ...]
     .venv/bin/python benchmarks/bench_c4d_long.py --summarise --json OUT.json [--plot OUT.png]
 """
 
@@ -53,8 +55,10 @@ def make_scene(data: Path, frames: int, resolution: str) -> Path:
     return folder
 
 
-def one_case(folder: str, overrides: list[str], preset: str) -> dict:
-    """One reconstruction (windowed if `window.frames` > 0 in `overrides`) in this process."""
+def one_case(folder: str, overrides: list[str], preset: str, tracker: str = "") -> dict:
+    """One reconstruction (windowed if `window.frames` > 0 in `overrides`) in this process, with
+    the tracks of the DynPT checkpoint `tracker` (queried as `c4d run` queries: a grid on frame 0,
+    `tracker.grid_size`) or, for "", the scene's own (`oracle_tracks`)."""
     import numpy as np
 
     from c4d_core.config import load_config
@@ -69,25 +73,32 @@ def one_case(folder: str, overrides: list[str], preset: str) -> dict:
     scene = next(read_scenes(folder, fields=SCENE_FIELDS))
     cfg = load_config("c4d", preset, overrides=overrides)
     source, flow = GroundTruthPointmaps.from_config(scene, cfg.gt_pointmaps), build_flow("dis")
-    tracks = oracle_tracks(scene)
     rss_inputs = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # GiB (ru_maxrss in KiB)
+    track_start = time.perf_counter()
+    if tracker:
+        from dynpt.inference import load_tracker
+
+        tracks = load_tracker(tracker, "cpu").track(scene.rgb, grid_size=cfg.tracker.grid_size, seed=int(cfg.seed))
+    else:
+        tracks = oracle_tracks(scene)
+    track_s = time.perf_counter() - track_start
     with tempfile.TemporaryDirectory() as out:
         run = reconstruct_windowed if cfg.window.frames else reconstruct
         rec = run(scene.rgb, source, flow, tracks, cfg, out)
     wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
     metrics = pose_metrics(rec.cam_to_world.astype(np.float64), scene.cam_to_world.astype(np.float64))
     return {"frames": scene.num_frames, "size": f"{scene.image_size[1]}x{scene.image_size[0]}",
-            "overrides": overrides, "wall_s": wall, "cpu_s": cpu, "rss_inputs_gib": rss_inputs,
+            "overrides": overrides, "tracker": tracker or "oracle", "track_s": track_s, "wall_s": wall, "cpu_s": cpu, "rss_inputs_gib": rss_inputs,
             "rss_peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
             "windows": len(rec.report.get("windows", [])) or 1, "stage_seconds": rec.report["seconds"],
             **metrics}
 
 
-def case(folder: Path, overrides: list[str], preset: str, repeats: int, label: str) -> dict:
+def case(folder: Path, overrides: list[str], preset: str, repeats: int, label: str, tracker: str = "") -> dict:
     """Medians over `repeats` subprocesses of `one_case`."""
     runs = []
     for _ in range(repeats):
-        cmd = [sys.executable, __file__, "--one", str(folder), preset, *overrides]
+        cmd = [sys.executable, __file__, "--one", str(folder), preset, tracker, *overrides]
         out = subprocess.run(cmd, capture_output=True, text=True)
         if out.returncode:
             raise RuntimeError(f"{label}: {out.stderr[-2000:]}")
@@ -136,6 +147,8 @@ def main() -> int:
     parser.add_argument("--preset", default="tiny", help="c4d preset of every run [tiny]")
     parser.add_argument("--resolution", default="192x256", help="HxW of the generated scenes")
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--tracker", default="", help="a DynPT checkpoint: its tracks (grid on frame 0, as `c4d run` "
+                        "queries) instead of the scene's own; its time and memory are in the case's")
     parser.add_argument("--data", type=Path, default=Path("runs/bench_c4d_long"))
     parser.add_argument("--json", type=Path, help="write the rows here")
     parser.add_argument("--plot", type=Path, help="write the memory / time plot here (PNG)")
@@ -145,7 +158,7 @@ def main() -> int:
     parser.add_argument("--one", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(one_case(args.one[0], args.one[2:], args.one[1])))
+        print(json.dumps(one_case(args.one[0], args.one[3:], args.one[1], args.one[2])))
         return 0
     windows = [f"window.frames={args.window}", f"window.overlap={args.overlap}"]
     print(f"commit {this_commit()}, load average {load_average()}, preset {args.preset}, "
@@ -158,7 +171,7 @@ def main() -> int:
         *((frames, windows, "C4D windows") for frames in args.frames)]
     for frames, overrides, label in (c for c in plan if not args.cases or c[2] in args.cases):
         folder = make_scene(args.data, frames, args.resolution)
-        rows.append(case(folder, [*overrides, *args.overrides], args.preset, args.repeats, label))
+        rows.append(case(folder, [*overrides, *args.overrides], args.preset, args.repeats, label, args.tracker))
         if args.json:  # after every case: a long run that is stopped keeps what it measured
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps({"commit": this_commit(), "rows": rows}, indent=1))
