@@ -130,7 +130,7 @@ def plot(rows: list[dict], path: Path) -> None:
                 mem.plot(frames, [r["rss_peak_gib"] - r["rss_inputs_gib"] for r in sel], "o--",
                          label=f"{label}: peak RSS - inputs")
     mem.set(xlabel="frames", ylabel="GiB", title="peak memory", ylim=(0, None))
-    wall.set(xlabel="frames", ylabel="minutes", title="time (2 CPU cores shared, load 4-7)", ylim=(0, None))
+    wall.set(xlabel="frames", ylabel="minutes", title="time (2 CPU cores shared with other jobs)", ylim=(0, None))
     for ax in (mem, wall):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
