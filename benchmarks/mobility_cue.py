@@ -31,7 +31,7 @@ import torch
 
 from c4d_core.config import load_config
 from c4d_core.files import write_text
-from c4d_pipeline.motion_mask import _fundamental_lmeds, sampson_distance
+from c4d_pipeline.motion_mask import fundamental_lmeds, sampson_distance
 from dynpt.evaluate import load_source, mobility_counted, track_item
 from dynpt.inference import load_tracker
 from dynpt.metrics import average_precision, roc_auc
@@ -48,7 +48,7 @@ def epipolar_cue(tracks: np.ndarray, visible: np.ndarray, seed: int = 0) -> np.n
     for t in range(T):
         a, b = max(t - 1, 0), min(t + 1, T - 1)
         both = visible[a] & visible[b]
-        fitted = _fundamental_lmeds(tracks[a, both], tracks[b, both], seed + t)
+        fitted = fundamental_lmeds(tracks[a, both], tracks[b, both], seed + t)
         if fitted is not None:
             cue[t] = sampson_distance(fitted[0], tracks[a].astype(np.float64), tracks[b].astype(np.float64))
     return cue

@@ -149,7 +149,7 @@ def sampson_distance(fundamental: np.ndarray, x1: np.ndarray, x2: np.ndarray) ->
     return np.abs(algebraic) / np.maximum(gradient, 1e-12)
 
 
-def _fundamental_lmeds(x1: np.ndarray, x2: np.ndarray, seed: int) -> tuple[np.ndarray, float] | None:
+def fundamental_lmeds(x1: np.ndarray, x2: np.ndarray, seed: int) -> tuple[np.ndarray, float] | None:
     """(F (3,3), sigma) from correspondences (M,2) <-> (M,2) by LMedS, or None without a solution.
 
     As in Rousseeuw's LMedS, the minimal-sample solution is followed by a least-squares refit
@@ -203,14 +203,14 @@ def pair_motion_mask(flow: np.ndarray, static_xy: np.ndarray, cfg: MotionMaskCon
         if np.percentile(np.linalg.norm(dst - src, axis=-1), 90) < cfg.still_camera_px:  # F undefined
             info["method"] = "still"
             return np.linalg.norm(flow, axis=-1) > cfg.sampson_threshold_px, info
-        fit = _fundamental_lmeds(src, dst, cfg.seed)
+        fit = fundamental_lmeds(src, dst, cfg.seed)
     else:
         fit = None
     if fit is None:
         info["method"] = "all-flow"
         src = _grid_points(height, width, cfg.fallback_grid_points)  # (M,2)
         dst = src + flow[src[:, 1].astype(int), src[:, 0].astype(int)]
-        fit = _fundamental_lmeds(src, dst, cfg.seed)
+        fit = fundamental_lmeds(src, dst, cfg.seed)
     if fit is None:
         info["method"] = "failed"
         return np.zeros((height, width), bool), info

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dynpt.evaluate import signed
+
 ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "docs" / "results" / "demo"
 PRESETS = ("movi-e", "movi-e-panning")
@@ -55,11 +57,6 @@ def one(text: str, pattern: str) -> tuple[str, ...]:
     found = re.findall(pattern, text)
     assert len(found) == 1, f"{len(found)} matches of {pattern!r}"
     return found[0] if isinstance(found[0], tuple) else (found[0],)
-
-
-def fmt(value: float, digits: int, sign: bool = False) -> str:
-    text = f"{value:+.{digits}f}" if sign else f"{value:.{digits}f}"
-    return text.replace("-0." + "0" * digits, "0." + "0" * digits)
 
 
 def paper(rec: dict, preset: str) -> tuple[dict, dict, list[float]]:
@@ -105,7 +102,7 @@ def test_readme_quotes_the_run():
         dynpt, zero, interval = paper(rec, preset)
         assert interval[0] > 0, f"the README says DynPT beats all-static on {preset}"
         expected = [100 * (dynpt["d_acc"] - zero["d_acc"]), *(100 * v for v in interval)]
-        assert one(text, pattern) == tuple(fmt(v, 1, sign=True) for v in expected)
+        assert one(text, pattern) == tuple(signed(v) for v in expected)
     assert one(text, r"balanced D-ACC (\d+) / (\d+), the target is 75") == \
         tuple(f"{100 * paper(rec, p)[0]['d_acc_balanced']:.0f}" for p in PRESETS)
 
@@ -158,7 +155,7 @@ def test_results_section_1_tables_are_the_run():
             f"{result['moving_ap']:.3f}", f"{100 * result['average_jaccard']:.1f}"], (preset, tracker)
         if result is dynpt:
             diff, low, high = (100 * (dynpt["d_acc"] - zero["d_acc"]), *(100 * v for v in interval))
-            assert difference == f"{fmt(diff, 1, True)} ({fmt(low, 1, True)} to {fmt(high, 1, True)})"
+            assert difference == f"{signed(diff)} ({signed(low)} to {signed(high)})"
 
     rows = table(text, "| scene | C4D ATE | GA only ATE |")
     runs = scenes(rec)
