@@ -34,25 +34,70 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: benchmarks.timing
 
 from benchmarks.timing import load_average, this_commit  # noqa: E402
 
-SCENE_FIELDS = ("rgb", "depth", "segmentation", "intrinsics", "cam_to_world", "object_to_world", "tracks",
-                "occluded", "query_frame", "track_object", "moving")  # what the gt source and oracle tracks read
+ON_DISK = ("depth", "segmentation")  # (T,H,W) fields the gt source reads a frame at a time from DATA/fN/NAME.npy
+SCENE_FIELDS = ("rgb", "intrinsics", "cam_to_world", "object_to_world", "tracks",
+                "occluded", "query_frame", "track_object", "moving")  # held whole: a video's frames, small arrays
 GA_ONLY = ["weights.cma=0", "weights.cts=0", "weights.pts=0"]
 
 
 def make_scene(data: Path, frames: int, resolution: str) -> Path:
-    """DATA/fN: one movi-e scene of `frames` frames (`c4d datagen`, made once)."""
+    """DATA/fN-HxW: one movi-e scene of `frames` frames (`c4d datagen`, made once), and its depth
+    and segmentation as plain .npy beside the shard (`ON_DISK`, written once by another process)."""
     folder = data / f"f{frames}-{resolution}"
     if not list(folder.glob("*.tar")):
         subprocess.run([sys.executable, "-m", "c4d.cli", "datagen", "--preset", "movi-e", "--num-scenes", "1",
                         "--out", str(folder), "--resolution", resolution, "--frames", str(frames),
                         "--workers", "1", "--overwrite"], check=True)
+    if not all((folder / f"{name}.npy").is_file() for name in ON_DISK):
+        subprocess.run([sys.executable, __file__, "--unpack", str(folder)], check=True)
     return folder
+
+
+def unpack(folder: str) -> None:
+    """Write the scene's `ON_DISK` fields as FOLDER/NAME.npy (atomically)."""
+    import numpy as np
+
+    from c4d_core.files import atomic_path
+    from datagen.shards import read_scenes
+
+    scene = next(read_scenes(folder, fields=ON_DISK))
+    for name in ON_DISK:
+        with atomic_path(Path(folder) / f"{name}.npy") as tmp:
+            with open(tmp, "wb") as f:
+                np.save(f, getattr(scene, name))
+
+
+class FramesOnDisk:
+    """A (T,H,W) array in an .npy file, read a frame at a time (`stack[t]`, a copy) and never held
+    whole: what a network pointmap source holds of the scene's depth (nothing), where the
+    ground-truth source that stands in for it needs depth and segmentation of the frames of each
+    pair. The file is mapped for each read and unmapped after, so its pages do not stay in the
+    process's resident memory."""
+
+    def __init__(self, path: Path):
+        import numpy as np
+
+        self.path = path
+        head = np.load(path, mmap_mode="r")
+        self.shape, self.dtype = head.shape, head.dtype
+        del head
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, t):
+        import numpy as np
+
+        if not isinstance(t, (int, np.integer)):
+            raise TypeError("FramesOnDisk reads one frame at a time: index it with an int")
+        return np.array(np.load(self.path, mmap_mode="r")[t])
 
 
 def one_case(folder: str, overrides: list[str], preset: str, tracker: str = "") -> dict:
@@ -70,7 +115,8 @@ def one_case(folder: str, overrides: list[str], preset: str, tracker: str = "") 
     from datagen.shards import read_scenes
 
     start, cpu_start = time.perf_counter(), time.process_time()
-    scene = next(read_scenes(folder, fields=SCENE_FIELDS))
+    scene = replace(next(read_scenes(folder, fields=SCENE_FIELDS)),
+                    **{name: FramesOnDisk(Path(folder) / f"{name}.npy") for name in ON_DISK})
     cfg = load_config("c4d", preset, overrides=overrides)
     source, flow = GroundTruthPointmaps.from_config(scene, cfg.gt_pointmaps), build_flow("dis")
     rss_inputs = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # GiB (ru_maxrss in KiB)
@@ -156,7 +202,11 @@ def main() -> int:
     parser.add_argument("--summarise", action="store_true", help="run nothing: the ratios and plot of --json's rows")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="c4d config overrides of every run")
     parser.add_argument("--one", nargs="+", help=argparse.SUPPRESS)
+    parser.add_argument("--unpack", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.unpack:
+        unpack(args.unpack)
+        return 0
     if args.one:
         print(json.dumps(one_case(args.one[0], args.one[3:], args.one[1], args.one[2])))
         return 0

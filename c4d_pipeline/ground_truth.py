@@ -116,10 +116,12 @@ def _smooth_field(rng: np.random.Generator, height: int, width: int, cells: int)
 
 def scene_key(scene) -> int:
     """CRC-32 of a scene's cameras (cam_to_world, intrinsics) and depth: a seed component that is
-    equal for the same scene however it was loaded and differs between scenes."""
+    equal for the same scene however it was loaded (arrays, or frames read from disk one at a time)
+    and differs between scenes."""
     key = 0
     for array in (scene.cam_to_world, scene.intrinsics, scene.depth):
-        key = zlib.crc32(np.ascontiguousarray(array, np.float32).tobytes(), key)
+        for t in range(len(array)):  # frame by frame: the same CRC, and a depth kept on disk is read a frame at a time
+            key = zlib.crc32(np.ascontiguousarray(array[t], np.float32).tobytes(), key)
     return key
 
 

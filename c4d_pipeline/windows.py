@@ -7,26 +7,37 @@ over the cameras (`window.frames` > 0 in the c4d config; 0 reconstructs the whol
    lies inside some window; a window must be longer than that pair. Each window owns the frames
    from the middle of its overlap with the previous window to the middle of its overlap with the
    next one: it writes their outputs.
-2. Per window, in turn: `pipeline.reconstruct` on the window's frames, unchanged (scene graph,
+2. Anchor (`window.anchor`, on by default, when there is more than one window): first one
+   reconstruction of `window.frames` keyframes spread evenly over the whole video
+   (`anchor_frames`), with the same scene graph over the keyframes (so its pairs are further
+   apart in time than a window's) and the same stages: a coarse reconstruction of the whole video
+   in one window's memory, whose world is the reference. Its points, confidences and motion masks
+   of the keyframes are kept (one window's shared frames' worth).
+3. Per window, in turn: `pipeline.reconstruct` on the window's frames, unchanged (scene graph,
    pairwise pointmaps, flow, motion masks, both optimisation stages). The pointmap source and the
    flow estimator see the whole video's frames and only the window's pairs, in video indices
    (`_WindowView`); the tracker result is cut to the window's frames (`window_tracks`).
-3. Join: the window's world is mapped onto the previous window's (already joined) world by the
-   similarity (Umeyama, `procrustes.weighted_procrustes`) that best maps its points of the shared
-   frames onto the previous window's points of the same pixels of the same frames: static pixels,
-   weighted by the smaller log-confidence of the two (`join_similarity`).
-4. The owned frames' outputs go to disk at once: frames, depth (in the joined world's units),
+4. Join: the similarity (Umeyama, `procrustes.weighted_procrustes`) that best maps the window's
+   points of some frames onto the reference's points of the same pixels of the same frames: static
+   pixels, weighted by the smaller log-confidence of the two (`join_similarity`). The frames: the
+   anchor's keyframes inside the window, so each window is placed in the anchor's world on its
+   own and errors do not add up along the video; a window without a keyframe (windows are spread
+   wider than the keyframes beyond `window.frames`^2 frames) or no anchor: the frames it shares
+   with the previous window, already joined (a chain, which drifts as the video goes on).
+5. The owned frames' outputs go to disk at once: frames, depth (in the joined world's units),
    masks, and the confidence in a scratch folder; the window's arrays are then dropped but for
    its points of the frames the next window shares.
-5. Cameras (`pose_graph`, `window.joint_iters` L-BFGS iterations; 0: off): every window measures
-   the relative pose of each forward pair of its scene graph; all frames' camera-to-world poses are
-   refined together to agree with the measurements of every window. Inside a window they agree
-   already; the pass spreads the disagreement of two windows on their shared frames over the
-   frames around each seam instead of leaving a jump where the owner changes.
-6. Final pass, one frame at a time: world points from the depth, intrinsics and refined pose;
+6. Cameras (`pose_graph`, `window.joint_iters` L-BFGS iterations; 0: off): the anchor and every
+   window measure the relative pose of each forward pair of their scene graph; all frames'
+   camera-to-world poses are refined together to agree with every measurement. Inside a window
+   they agree already; the pass spreads the disagreement of two windows on their shared frames
+   over the frames around each seam instead of leaving a jump where the owner changes, and the
+   anchor's pairs tie frames far apart.
+7. Final pass, one frame at a time: world points from the depth, intrinsics and refined pose;
    pointmaps.npz (streamed, `outputs.write_npz_frames`), coloured depth, 3-D tracks and scene.ply.
-Peak memory is one window's reconstruction plus a few arrays of (T,) poses and (T,N) tracks; the
-frames of the video (uint8) and the tracker result are held whole, as the caller gives them.
+Peak memory is one window's reconstruction plus the anchor's keyframe points and a few arrays of
+(T,) poses and (T,N) tracks; the frames of the video (uint8) and the tracker result are held
+whole, as the caller gives them.
 """
 
 from __future__ import annotations
@@ -94,29 +105,36 @@ def plan_windows(num_frames: int, frames: int, overlap: int, graph_cfg) -> list[
     return [Window(s, e, a, b) for s, e, a, b in zip(starts, stops, owns[:-1], owns[1:])]
 
 
-class _WindowView:
-    """A pointmap source and flow estimator seen from a window starting at video frame `start`:
-    asked for pairs in window indices, it asks `source` / `flow_estimator` for the same pairs in
-    video indices, with the whole video's `frames` (what sources of generated scenes need)."""
+def anchor_frames(num_frames: int, frames: int) -> np.ndarray:
+    """The anchor's keyframes (module docstring, 2.): `frames` video frames (int (K,), increasing)
+    spread evenly from the first frame to the last."""
+    return np.unique(np.round(np.linspace(0, num_frames - 1, frames)).astype(np.int64))
 
-    def __init__(self, source, flow_estimator, frames: np.ndarray, start: int):
-        self.source, self.flow_estimator, self.frames, self.start = source, flow_estimator, frames, start
+
+class _WindowView:
+    """A pointmap source and flow estimator seen from a window of video frames `index` (int (F,),
+    increasing): asked for pairs of window frames, it asks `source` / `flow_estimator` for the same
+    pairs in video indices, with the whole video's `frames` (what sources of generated scenes need)."""
+
+    def __init__(self, source, flow_estimator, frames: np.ndarray, index: np.ndarray):
+        self.source, self.flow_estimator, self.frames, self.index = source, flow_estimator, frames, index
 
     def pointmaps(self, frames, edges):
-        pw = self.source.pointmaps(self.frames, np.asarray(edges) + self.start)
-        return replace(pw, edges=np.asarray(pw.edges) - self.start)
+        pw = self.source.pointmaps(self.frames, self.index[np.asarray(edges)])
+        return replace(pw, edges=np.searchsorted(self.index, pw.edges))
 
     def flow(self, frames, pairs):
-        return self.flow_estimator.flow(self.frames, [(i + self.start, j + self.start) for i, j in pairs])
+        return self.flow_estimator.flow(self.frames, [(int(self.index[i]), int(self.index[j])) for i, j in pairs])
 
 
-def window_tracks(tracker_result, start: int, stop: int):
-    """The tracker result (T frames) cut to frames [start, stop); query frames shifted to match."""
+def window_tracks(tracker_result, index: np.ndarray):
+    """The tracker result (T frames) cut to the video frames `index` (int (F,), increasing); each
+    query's frame becomes the position of the first of them at or after it."""
     if tracker_result is None:
         return None
     queries = np.array(tracker_result.queries, np.float32)  # (N,3) t, x, y
-    queries[:, 0] -= start
-    return replace(tracker_result, **{name: np.asarray(getattr(tracker_result, name))[start:stop]
+    queries[:, 0] = np.searchsorted(index, queries[:, 0])
+    return replace(tracker_result, **{name: np.asarray(getattr(tracker_result, name))[index]
                                       for name in ("tracks", "visible", "confidence", "moving")},
                    queries=queries)
 
@@ -155,16 +173,21 @@ def pose_graph(cam_to_world: np.ndarray, pairs: np.ndarray, relative: np.ndarray
     measured pose of camera j in camera i's frame (P_i^-1 P_j). Minimises, over a rotation
     increment (the quaternion (1, v), normalised; v ~ half the axis-angle) and a translation
     increment per frame (frame 0 held, fixing the gauge; the scale is the measurements'),
-    sum ||R_i^T R_j - R_ij||_F^2 + 2 ||R_i^T (t_j - t_i) - t_ij||^2 / depth^2: a camera moved by
-    d at the typical `depth` of the scene (its median, in the poses' units) weighs as one turned by
-    d / depth radians (||R(a) - I||_F^2 = 8 sin^2(a/2) ~ 2 a^2), so neither error is traded for the
-    other by a choice of units; `iters` L-BFGS iterations (0: unchanged). float64.
+    sum (||R_i^T R_j - R_ij||_F^2 + 2 ||R_i^T (t_j - t_i) - t_ij||^2 / depth^2) / |j - i|: a camera
+    moved by d at the typical `depth` of the scene (its median, in the poses' units) weighs as one
+    turned by d / depth radians (||R(a) - I||_F^2 = 8 sin^2(a/2) ~ 2 a^2), so neither error is
+    traded for the other by a choice of units; each pair weighs 1 / its span in frames, as the error
+    of a relative pose grows with the span like a random walk's (variance ~ span): the anchor's
+    pairs, 3 to 27 frames long at 90 frames, hold the drift without outweighing the windows'
+    neighbouring frames (equal weights: ATE 0.92x the whole video's but RPE trans 2.4x; 1 / span:
+    1.05x and 1.3x; docs/perf/c4d_long.md). `iters` L-BFGS iterations (0: unchanged). float64.
     """
     if iters <= 0 or len(pairs) == 0:
         return np.array(cam_to_world, np.float64)
     init = torch.from_numpy(np.asarray(cam_to_world, np.float64))
     rel = torch.from_numpy(np.asarray(relative, np.float64))
     i, j = torch.from_numpy(pairs[:, 0]), torch.from_numpy(pairs[:, 1])
+    weight = 1.0 / (j - i).abs().to(torch.float64)  # (M,) 1 / the pair's span in frames
     free = torch.ones(len(init), 1, dtype=torch.float64)
     free[0] = 0.0
     turn = torch.zeros(len(init), 3, dtype=torch.float64, requires_grad=True)  # v of each quaternion (1, v)
@@ -178,8 +201,8 @@ def pose_graph(cam_to_world: np.ndarray, pairs: np.ndarray, relative: np.ndarray
         opt.zero_grad()
         rot, pos = poses()
         r_i = rot[i].transpose(1, 2)
-        value = ((r_i @ rot[j] - rel[:, :3, :3]) ** 2).sum() + (
-            ((r_i @ (pos[j] - pos[i])[..., None])[..., 0] - rel[:, :3, 3]) ** 2).sum() * 2 / depth ** 2
+        value = (weight * (((r_i @ rot[j] - rel[:, :3, :3]) ** 2).sum((1, 2)) + (
+            ((r_i @ (pos[j] - pos[i])[..., None])[..., 0] - rel[:, :3, 3]) ** 2).sum(-1) * 2 / depth ** 2)).sum()
         value.backward()
         return value
 
@@ -194,7 +217,7 @@ def pose_graph(cam_to_world: np.ndarray, pairs: np.ndarray, relative: np.ndarray
 
 def write_world(out: Path, scratch: Path, frames: np.ndarray, cam_to_world: np.ndarray, intrinsics: np.ndarray,
                 tracks_2d: dict | None, depth_range, oc) -> tuple[np.ndarray, np.ndarray] | None:
-    """The last pass (module docstring, 6.), one frame at a time: pointmaps.npz, depth/*.png, scene.ply.
+    """The last pass (module docstring, 7.), one frame at a time: pointmaps.npz, depth/*.png, scene.ply.
 
     out: the output folder holding depth/*.npy and masks/*.png of every frame; scratch: the folder
     of each frame's confidence (H,W) as NNNNNN.npy and of scene.ply's rows while they are written;
@@ -248,6 +271,8 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
     asked for pairs (i, j) of video frames with all T frames; tracker_result with (T,N) arrays or
     None; cfg a c4d config with `window.frames` > 0; timestamps float64 (T,) seconds; intrinsics
     known (T,4) fx, fy, cx, cy. `UserError` on a window setting that cannot hold the scene graph.
+    report.json gains `windows` (each window's frames, owned frames, join scale and what it was
+    joined to: "anchor", "previous" or "reference") and `anchor` (its keyframes, its losses).
     """
     check_frames(frames)
     num_frames, h, w = frames.shape[:3]
@@ -264,29 +289,61 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
     seconds: dict[str, float] = {}
     depth_sample = []  # every 8th pixel of every frame's depth: the colour range of depth/*.png
     carry = None  # the previous window's frames shared with the next: (first frame, points, conf, static)
+    anchor = None  # the keyframes' (index, points, conf, static) in the reference world
+
+    def part(index: np.ndarray):
+        """`reconstruct` on the video frames `index` (int (F,), increasing), its seconds counted."""
+        view = _WindowView(pointmap_source, flow_estimator, frames, index)
+        rec = reconstruct(frames[index], view, view, window_tracks(tracker_result, index), cfg,
+                          intrinsics=None if intrinsics is None else intrinsics[index])
+        for key, value in rec.report["seconds"].items():
+            seconds[key] = seconds.get(key, 0.0) + value
+        return rec
+
+    def measure(index: np.ndarray, poses: np.ndarray) -> None:
+        """The pose graph's measurements: relative poses (in the reference world's units) of the
+        forward graph pairs of a part of frames `index` with joined poses (F,4,4)."""
+        local = graph_from_config(len(index), cfg.graph)
+        local = local[local[:, 0] < local[:, 1]]
+        pairs.append(index[local])
+        relative.append(np.linalg.inv(poses[local[:, 0]]) @ poses[local[:, 1]])
+
     with tempfile.TemporaryDirectory(dir=out, prefix=".windows-") as scratch:
         scratch = Path(scratch)
+        if wc.anchor and len(plan) > 1:
+            keys = anchor_frames(num_frames, wc.frames)
+            log.info("anchor: %d keyframes, every %.1f frames", len(keys), (num_frames - 1) / (len(keys) - 1))
+            rec = part(keys)
+            measure(keys, np.asarray(rec.cam_to_world, np.float64))
+            anchor = (keys, rec.points, rec.confidence, ~rec.masks)
+            anchor_report = {"frames": keys.tolist(), "losses": {stage: {name: curve[-1] for name, curve in curves.items()}
+                                                                  for stage, curves in rec.report["losses"].items()}}
+            del rec
         for n, win in enumerate(plan):
             log.info("window %d/%d: frames %d-%d", n + 1, len(plan), win.start, win.stop - 1)
-            view = _WindowView(pointmap_source, flow_estimator, frames, win.start)
-            rec = reconstruct(frames[win.start:win.stop], view, view, window_tracks(tracker_result, win.start, win.stop), cfg,
-                              intrinsics=None if intrinsics is None else intrinsics[win.start:win.stop])
+            rec = part(np.arange(win.start, win.stop))
             mask_method = rec.report["inputs"]["motion_masks"]  # the same in every window
-            for key, value in rec.report["seconds"].items():
-                seconds[key] = seconds.get(key, 0.0) + value
+            src, dst, src_conf, dst_conf, static, joined_to = [], [], [], [], [], []
+            inside = [] if anchor is None else np.flatnonzero((anchor[0] >= win.start) & (anchor[0] < win.stop))
+            if len(inside):  # the anchor's keyframes in the window
+                mine = anchor[0][inside] - win.start
+                src.append(rec.points[mine]), src_conf.append(rec.confidence[mine])
+                dst.append(anchor[1][inside]), dst_conf.append(anchor[2][inside])
+                static.append(anchor[3][inside] & ~rec.masks[mine])
+                joined_to.append("anchor")
+            if carry is not None:  # the frames shared with the previous window, joined already
+                first, points, conf, still = carry
+                shared = slice(first - win.start, first - win.start + len(points))
+                src.append(rec.points[shared]), src_conf.append(rec.confidence[shared])
+                dst.append(points), dst_conf.append(conf), static.append(still & ~rec.masks[shared])
+                joined_to.append("previous")
             scale, rot, trans = 1.0, np.eye(3), np.zeros(3)
-            if carry is not None:
-                first, dst, dst_conf, dst_static = carry
-                shared = slice(first - win.start, first - win.start + len(dst))
-                scale, rot, trans = join_similarity(rec.points[shared], dst, rec.confidence[shared], dst_conf,
-                                                    dst_static & ~rec.masks[shared])
+            if src:
+                scale, rot, trans = join_similarity(*map(np.concatenate, (src, dst, src_conf, dst_conf, static)))
             poses = similarity_poses(rec.cam_to_world, scale, rot, trans)  # (F,4,4)
-            local = graph_from_config(win.stop - win.start, cfg.graph)
-            local = local[local[:, 0] < local[:, 1]]
-            pairs.append(local + win.start)
-            relative.append(np.linalg.inv(poses[local[:, 0]]) @ poses[local[:, 1]])
+            measure(np.arange(win.start, win.stop), poses)
             windows_report.append({"frames": [win.start, win.stop], "owns": [win.own_start, win.own_stop],
-                                   "scale": scale})
+                                   "scale": scale, "joined_to": joined_to or ["reference"]})
             for stage, curves in rec.report["losses"].items():  # each curve's last value, window by window
                 for name, curve in curves.items():
                     losses.setdefault(stage, {}).setdefault(name, []).append(curve[-1])
@@ -326,6 +383,7 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
                    **(inputs or {})},
         "config": to_dict(cfg), "seconds": seconds, "losses": losses,
         "windows": windows_report,
+        **({"anchor": anchor_report} if anchor is not None else {}),
         "versions": software_versions(),
     }
     write_json(out / "report.json", report, indent=1)

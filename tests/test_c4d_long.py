@@ -16,7 +16,7 @@ from c4d_pipeline.flow import build_flow
 from c4d_pipeline.ground_truth import GroundTruthPointmaps, oracle_tracks
 from c4d_pipeline.outputs import PlyStream, _ply_bytes, read_reconstruction, write_npz_frames
 from c4d_pipeline.pipeline import reconstruct
-from c4d_pipeline.windows import (join_similarity, plan_windows, pose_graph, reconstruct_windowed,
+from c4d_pipeline.windows import (anchor_frames, join_similarity, plan_windows, pose_graph, reconstruct_windowed,
                                   similarity_poses)
 from tests.synthetic_scenes import make_box_scene
 from tests.test_c4d_run import make_inputs
@@ -75,6 +75,47 @@ def test_windows_that_cannot_hold_the_graph_are_refused(frames, overlap, message
     assert message in str(err.value) and "\n" not in str(err.value)
 
 
+def test_the_anchors_pairs_hold_the_drift_of_the_chain():
+    """Windows whose measurements turn a little too much each (a drift that adds up along the
+    chain) and an anchor whose few long pairs do not drift but are noisy: the pass with the anchor
+    ends near the true path, the windows alone stay on the drifted one, and the anchor's noise
+    does not undo the windows' neighbouring frames (weights 1 / span)."""
+    rng = np.random.default_rng(0)
+    count = 60
+    truth = np.tile(np.eye(4), (count, 1, 1))
+    truth[:, 0, 3] = np.arange(count) * 0.1  # a straight path along x
+
+    def turn(angle):  # (4,4) rotation about z
+        out = np.eye(4)
+        out[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+        return out
+
+    window = np.array([(i, j) for i in range(count) for j in (i + 1, i + 3) if j < count])
+    drifted = [np.linalg.inv(truth[i]) @ truth[j] @ turn(0.004 * (j - i)) for i, j in window]  # 0.23 deg a frame
+    keys = anchor_frames(count, 12)
+    anchor = np.array([(keys[a], keys[b]) for a in range(len(keys)) for b in (a + 1, a + 2) if b < len(keys)])
+    noisy = []
+    for i, j in anchor:
+        rel = np.linalg.inv(truth[i]) @ truth[j] @ turn(rng.normal(0, 0.002))
+        rel[:3, 3] += rng.normal(0, 0.005, 3)
+        noisy.append(rel)
+
+    def chained(pairs, relative):  # poses integrated along the neighbouring pairs
+        step = {(int(i), int(j)): r for (i, j), r in zip(pairs, relative)}
+        poses = [np.eye(4)]
+        for t in range(1, count):
+            poses.append(poses[-1] @ step[(t - 1, t)])
+        return np.stack(poses)
+
+    start = chained(window, drifted)
+    alone = pose_graph(start, window, np.stack(drifted), 1.0, 100)
+    both = pose_graph(start, np.concatenate([window, anchor]), np.stack([*drifted, *noisy]), 1.0, 100)
+    error = {name: pose_metrics(poses, truth) for name, poses in (("alone", alone), ("both", both))}
+    assert error["alone"]["ate"] > 0.05  # the drift of the chain: the path (5.9 long) bends by 13 degrees
+    assert error["both"]["ate"] < 0.6 * error["alone"]["ate"], error  # 0.030 against 0.054
+    assert error["both"]["rpe_trans"] < 0.002, error  # steps of 0.1: the anchor's noise (0.005) is not spread into them
+
+
 def test_pose_graph_closes_a_seam():
     """Two windows measure the same chain of poses; the second one's poses are off by a jump.
     The pass leaves each window's own measurements met and spreads the jump over the seam."""
@@ -130,14 +171,34 @@ def test_windowed_poses_agree_with_the_whole_video(windowed_and_whole):
     assert between["ate"] < 0.05 * path and between["rpe_rot"] < 1.0, between
 
 
-def test_sources_are_asked_only_for_pairs_inside_one_window(windowed_and_whole):
+def test_sources_are_asked_only_for_pairs_of_the_anchor_or_inside_one_window(windowed_and_whole):
     scene, _, windowed, cfg, source, flow, _ = windowed_and_whole
     plan = plan_windows(24, 10, 4, cfg.graph)
+    keys = anchor_frames(24, 10)
+    np.testing.assert_array_equal(keys, [0, 3, 5, 8, 10, 13, 15, 18, 20, 23])  # first to last, evenly
+    assert windowed.report["anchor"]["frames"] == keys.tolist()
     assert len(windowed.report["windows"]) == len(plan) == 4
+    assert [w["joined_to"] for w in windowed.report["windows"]] == [  # every window holds keyframes
+        ["anchor"], ["anchor", "previous"], ["anchor", "previous"], ["anchor", "previous"]]
     for recorder in (source, flow):
-        assert len(recorder.calls) == len(plan)  # one request per window, none for the whole video
-        for pairs, win in zip(recorder.calls, plan):
+        assert len(recorder.calls) == 1 + len(plan)  # the anchor, then one request per window; none for the whole video
+        assert np.isin(recorder.calls[0], keys).all() and np.ptp(recorder.calls[0]) > 10  # the anchor's pairs span windows
+        for pairs, win in zip(recorder.calls[1:], plan):
             assert pairs.min() >= win.start and pairs.max() < win.stop, (pairs.min(), pairs.max(), win)
+
+
+def test_without_the_anchor_the_windows_are_chained(windowed_and_whole, tmp_path):
+    scene, whole, windowed, *_ = windowed_and_whole
+    cfg = load_config("c4d", "tiny", overrides=[*FAST, "window.frames=10", "window.overlap=4", "window.anchor=false"])
+    source = _Recording(GroundTruthPointmaps(scene))
+    chained = reconstruct_windowed(scene.rgb, source, build_flow("gt", scene=scene), oracle_tracks(scene), cfg, tmp_path)
+    assert "anchor" not in chained.report and len(source.calls) == 4  # the windows' requests only
+    assert [w["joined_to"] for w in chained.report["windows"]] == [["reference"], *[["previous"]] * 3]
+    truth = scene.cam_to_world.astype(np.float64)
+    path = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1).sum()
+    ate = {name: pose_metrics(rec.cam_to_world.astype(np.float64), truth)["ate"]
+           for name, rec in (("whole", whole), ("anchor", windowed), ("chain", chained))}
+    assert ate["chain"] < 1.5 * ate["whole"] + 0.01 * path, ate
 
 
 def test_streamed_outputs_are_a_reconstruction(windowed_and_whole):
