@@ -29,10 +29,12 @@ over the cameras (`window.frames` > 0 in the c4d config; 0 reconstructs the whol
    its points of the frames the next window shares.
 6. Cameras (`pose_graph`, `window.joint_iters` L-BFGS iterations; 0: off): the anchor and every
    window measure the relative pose of each forward pair of their scene graph; all frames'
-   camera-to-world poses are refined together to agree with every measurement. Inside a window
-   they agree already; the pass spreads the disagreement of two windows on their shared frames
-   over the frames around each seam instead of leaving a jump where the owner changes, and the
-   anchor's pairs tie frames far apart.
+   camera-to-world poses are refined together to agree with every measurement, each weighted
+   1 / the pair's offset in the reconstruction that measured it (the graph's steps: a pair of
+   neighbouring keyframes weighs as a pair of neighbouring frames). Inside a window the poses
+   agree already; the pass spreads the disagreement of two windows on their shared frames over
+   the frames around each seam instead of leaving a jump where the owner changes, and the
+   anchor's pairs, which span the video, hold the drift that the windows' pairs alone integrate.
 7. Final pass, one frame at a time: world points from the depth, intrinsics and refined pose;
    pointmaps.npz (streamed, `outputs.write_npz_frames`), coloured depth, 3-D tracks and scene.ply.
 Peak memory is one window's reconstruction plus the anchor's keyframe points and a few arrays of
@@ -165,29 +167,26 @@ def similarity_poses(cam_to_world: np.ndarray, scale: float, rot: np.ndarray, tr
     return out
 
 
-def pose_graph(cam_to_world: np.ndarray, pairs: np.ndarray, relative: np.ndarray, depth: float,
-               iters: int) -> np.ndarray:
+def pose_graph(cam_to_world: np.ndarray, pairs: np.ndarray, relative: np.ndarray, weights: np.ndarray,
+               depth: float, iters: int) -> np.ndarray:
     """Camera-to-world poses (T,4,4) refined to agree with measured relative poses.
 
     cam_to_world: float (T,4,4) initial poses; pairs: int (M,2) frames (i, j); relative: (M,4,4)
-    measured pose of camera j in camera i's frame (P_i^-1 P_j). Minimises, over a rotation
-    increment (the quaternion (1, v), normalised; v ~ half the axis-angle) and a translation
-    increment per frame (frame 0 held, fixing the gauge; the scale is the measurements'),
-    sum (||R_i^T R_j - R_ij||_F^2 + 2 ||R_i^T (t_j - t_i) - t_ij||^2 / depth^2) / |j - i|: a camera
-    moved by d at the typical `depth` of the scene (its median, in the poses' units) weighs as one
-    turned by d / depth radians (||R(a) - I||_F^2 = 8 sin^2(a/2) ~ 2 a^2), so neither error is
-    traded for the other by a choice of units; each pair weighs 1 / its span in frames, as the error
-    of a relative pose grows with the span like a random walk's (variance ~ span): the anchor's
-    pairs, 3 to 27 frames long at 90 frames, hold the drift without outweighing the windows'
-    neighbouring frames (equal weights: ATE 0.92x the whole video's but RPE trans 2.4x; 1 / span:
-    1.05x and 1.3x; docs/perf/c4d_long.md). `iters` L-BFGS iterations (0: unchanged). float64.
+    measured pose of camera j in camera i's frame (P_i^-1 P_j); weights: float (M,). Minimises,
+    over a rotation increment (the quaternion (1, v), normalised; v ~ half the axis-angle) and a
+    translation increment per frame (frame 0 held, fixing the gauge; the scale is the
+    measurements'), sum w (||R_i^T R_j - R_ij||_F^2 + 2 ||R_i^T (t_j - t_i) - t_ij||^2 / depth^2):
+    a camera moved by d at the typical `depth` of the scene (its median, in the poses' units)
+    weighs as one turned by d / depth radians (||R(a) - I||_F^2 = 8 sin^2(a/2) ~ 2 a^2), so neither
+    error is traded for the other by a choice of units. `iters` L-BFGS iterations (0: unchanged).
+    float64.
     """
     if iters <= 0 or len(pairs) == 0:
         return np.array(cam_to_world, np.float64)
     init = torch.from_numpy(np.asarray(cam_to_world, np.float64))
     rel = torch.from_numpy(np.asarray(relative, np.float64))
     i, j = torch.from_numpy(pairs[:, 0]), torch.from_numpy(pairs[:, 1])
-    weight = 1.0 / (j - i).abs().to(torch.float64)  # (M,) 1 / the pair's span in frames
+    weight = torch.from_numpy(np.asarray(weights, np.float64))  # (M,)
     free = torch.ones(len(init), 1, dtype=torch.float64)
     free[0] = 0.0
     turn = torch.zeros(len(init), 3, dtype=torch.float64, requires_grad=True)  # v of each quaternion (1, v)
@@ -284,7 +283,7 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
         name: np.asarray(getattr(tracker_result, name)) for name in ("tracks", "visible", "moving", "queries")}
     cam_to_world = np.zeros((num_frames, 4, 4))  # joined poses of the owning windows
     intrinsics_out = np.zeros((num_frames, 3, 3), np.float32)
-    pairs, relative, windows_report = [], [], []
+    pairs, relative, weights, windows_report = [], [], [], []
     losses: dict[str, dict[str, list[float]]] = {}  # stage -> loss -> its last value in each window
     seconds: dict[str, float] = {}
     depth_sample = []  # every 8th pixel of every frame's depth: the colour range of depth/*.png
@@ -302,11 +301,13 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
 
     def measure(index: np.ndarray, poses: np.ndarray) -> None:
         """The pose graph's measurements: relative poses (in the reference world's units) of the
-        forward graph pairs of a part of frames `index` with joined poses (F,4,4)."""
+        forward graph pairs of a part of frames `index` with joined poses (F,4,4), each weighted
+        1 / its offset in the part (module docstring, 6.)."""
         local = graph_from_config(len(index), cfg.graph)
         local = local[local[:, 0] < local[:, 1]]
         pairs.append(index[local])
         relative.append(np.linalg.inv(poses[local[:, 0]]) @ poses[local[:, 1]])
+        weights.append(1.0 / (local[:, 1] - local[:, 0]))
 
     with tempfile.TemporaryDirectory(dir=out, prefix=".windows-") as scratch:
         scratch = Path(scratch)
@@ -363,7 +364,7 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
 
         start = time.perf_counter()
         depth_sample = np.concatenate(depth_sample)
-        cam_to_world = pose_graph(cam_to_world, np.concatenate(pairs), np.concatenate(relative),
+        cam_to_world = pose_graph(cam_to_world, np.concatenate(pairs), np.concatenate(relative), np.concatenate(weights),
                                   float(np.median(depth_sample)), int(wc.joint_iters)).astype(np.float32)
         seconds["pose_graph"] = time.perf_counter() - start
         start = time.perf_counter()
