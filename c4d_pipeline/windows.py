@@ -324,27 +324,22 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
             log.info("window %d/%d: frames %d-%d", n + 1, len(plan), win.start, win.stop - 1)
             rec = part(np.arange(win.start, win.stop))
             mask_method = rec.report["inputs"]["motion_masks"]  # the same in every window
-            src, dst, src_conf, dst_conf, static, joined_to = [], [], [], [], [], []
+            refs = {}  # what the window is joined through: name -> (its frames (S,), points, conf, static)
             inside = [] if anchor is None else np.flatnonzero((anchor[0] >= win.start) & (anchor[0] < win.stop))
             if len(inside):  # the anchor's keyframes in the window
-                mine = anchor[0][inside] - win.start
-                src.append(rec.points[mine]), src_conf.append(rec.confidence[mine])
-                dst.append(anchor[1][inside]), dst_conf.append(anchor[2][inside])
-                static.append(anchor[3][inside] & ~rec.masks[mine])
-                joined_to.append("anchor")
+                refs["anchor"] = (anchor[0][inside] - win.start, *(a[inside] for a in anchor[1:]))
             if carry is not None:  # the frames shared with the previous window, joined already
-                first, points, conf, still = carry
-                shared = slice(first - win.start, first - win.start + len(points))
-                src.append(rec.points[shared]), src_conf.append(rec.confidence[shared])
-                dst.append(points), dst_conf.append(conf), static.append(still & ~rec.masks[shared])
-                joined_to.append("previous")
+                first, *shared = carry
+                refs["previous"] = (np.arange(first - win.start, first - win.start + len(shared[0])), *shared)
             scale, rot, trans = 1.0, np.eye(3), np.zeros(3)
-            if src:
-                scale, rot, trans = join_similarity(*map(np.concatenate, (src, dst, src_conf, dst_conf, static)))
+            if refs:
+                mine, dst, dst_conf, dst_static = (np.concatenate(parts) for parts in zip(*refs.values()))
+                scale, rot, trans = join_similarity(rec.points[mine], dst, rec.confidence[mine], dst_conf,
+                                                    dst_static & ~rec.masks[mine])
             poses = similarity_poses(rec.cam_to_world, scale, rot, trans)  # (F,4,4)
             measure(np.arange(win.start, win.stop), poses)
             windows_report.append({"frames": [win.start, win.stop], "owns": [win.own_start, win.own_stop],
-                                   "scale": scale, "joined_to": joined_to or ["reference"]})
+                                   "scale": scale, "joined_to": list(refs) or ["reference"]})
             for stage, curves in rec.report["losses"].items():  # each curve's last value, window by window
                 for name, curve in curves.items():
                     losses.setdefault(stage, {}).setdefault(name, []).append(curve[-1])
