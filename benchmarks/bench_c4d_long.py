@@ -62,16 +62,12 @@ def make_scene(data: Path, frames: int, resolution: str) -> Path:
 
 def unpack(folder: str) -> None:
     """Write the scene's `ON_DISK` fields as FOLDER/NAME.npy (atomically)."""
-    import numpy as np
-
-    from c4d_core.files import atomic_path
+    from c4d_pipeline.outputs import save_npy
     from datagen.shards import read_scenes
 
     scene = next(read_scenes(folder, fields=ON_DISK))
     for name in ON_DISK:
-        with atomic_path(Path(folder) / f"{name}.npy") as tmp:
-            with open(tmp, "wb") as f:
-                np.save(f, getattr(scene, name))
+        save_npy(Path(folder) / f"{name}.npy", getattr(scene, name))
 
 
 class FramesOnDisk:

@@ -20,10 +20,9 @@ over the cameras (`window.frames` > 0 in the c4d config; 0 reconstructs the whol
 4. Join: the similarity (Umeyama, `procrustes.weighted_procrustes`) that best maps the window's
    points of some frames onto the reference's points of the same pixels of the same frames: static
    pixels, weighted by the smaller log-confidence of the two (`join_similarity`). The frames: the
-   anchor's keyframes inside the window, so each window is placed in the anchor's world on its
-   own and errors do not add up along the video; a window without a keyframe (windows are spread
-   wider than the keyframes beyond `window.frames`^2 frames) or no anchor: the frames it shares
-   with the previous window, already joined (a chain, which drifts as the video goes on).
+   anchor's keyframes inside the window (none beyond about `window.frames`^2 frames, where the
+   keyframes lie further apart than a window is long) together with the frames it shares with
+   the previous, already joined window; without the anchor the shared frames alone (a chain).
 5. The owned frames' outputs go to disk at once: frames, depth (in the joined world's units),
    masks, and the confidence in a scratch folder; the window's arrays are then dropped but for
    its points of the frames the next window shares.
@@ -214,6 +213,11 @@ def pose_graph(cam_to_world: np.ndarray, pairs: np.ndarray, relative: np.ndarray
     return out
 
 
+def final_losses(report: dict) -> dict[str, dict[str, float]]:
+    """Each loss curve's last value in a `reconstruct` report: stage -> loss -> value."""
+    return {stage: {name: curve[-1] for name, curve in curves.items()} for stage, curves in report["losses"].items()}
+
+
 def write_world(out: Path, scratch: Path, frames: np.ndarray, cam_to_world: np.ndarray, intrinsics: np.ndarray,
                 tracks_2d: dict | None, depth_range, oc) -> tuple[np.ndarray, np.ndarray] | None:
     """The last pass (module docstring, 7.), one frame at a time: pointmaps.npz, depth/*.png, scene.ply.
@@ -317,8 +321,7 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
             rec = part(keys)
             measure(keys, np.asarray(rec.cam_to_world, np.float64))
             anchor = (keys, rec.points, rec.confidence, ~rec.masks)
-            anchor_report = {"frames": keys.tolist(), "losses": {stage: {name: curve[-1] for name, curve in curves.items()}
-                                                                  for stage, curves in rec.report["losses"].items()}}
+            anchor_report = {"frames": keys.tolist(), "losses": final_losses(rec.report)}
             del rec
         for n, win in enumerate(plan):
             log.info("window %d/%d: frames %d-%d", n + 1, len(plan), win.start, win.stop - 1)
@@ -340,9 +343,9 @@ def reconstruct_windowed(frames: np.ndarray, pointmap_source, flow_estimator, tr
             measure(np.arange(win.start, win.stop), poses)
             windows_report.append({"frames": [win.start, win.stop], "owns": [win.own_start, win.own_stop],
                                    "scale": scale, "joined_to": list(refs) or ["reference"]})
-            for stage, curves in rec.report["losses"].items():  # each curve's last value, window by window
-                for name, curve in curves.items():
-                    losses.setdefault(stage, {}).setdefault(name, []).append(curve[-1])
+            for stage, values in final_losses(rec.report).items():  # window by window
+                for name, value in values.items():
+                    losses.setdefault(stage, {}).setdefault(name, []).append(value)
             for t in range(win.own_start, win.own_stop):
                 k = t - win.start
                 outputs.write_frame(out, t, rec.frames[k], scale * rec.depth[k], rec.masks[k])
