@@ -1,11 +1,12 @@
 """Motion-mask quality on generated scenes: C4D's DynPT + flow masks vs the flow-only baseline.
 
-    .venv/bin/python benchmarks/eval_c4d_masks.py --scenes SHARDS [--max-scenes 8]
+    .venv/bin/python benchmarks/eval_c4d_masks.py --scenes SHARDS [--skip 0] [--max-scenes 8]
         [--tracker CKPT] [--thresholds 0.5,1,2] [--flow-only-thresholds 0.25,0.35,0.5]
         [--flows gt,dis] [--pair-sets all,1] [--no-flow-only] [--noise-sigmas 4]
-        [--judge-out-of-view both] [--per-scene]
+        [--judge-out-of-view both] [--per-scene] [--config default] [key=value ...]
 
-For every scene (the scene graph of configs/c4d/default.yaml) and every flow (exact 'gt' and
+For every scene (the scene graph of configs/c4d/<--config>.yaml, whose motion_mask.c4d settings,
+with the key=value overrides of that config, are the masks' own besides the swept ones) and every flow (exact 'gt' and
 'dis', or any `build_flow` spec such as 'dis:fast'), the masks of
   - C4D (sec. 3.2.2) with an ORACLE tracker: the scene's own tracks and mobility labels;
   - C4D with the oracle's tracks but every mobility set to static (what DynPT's mobility adds
@@ -92,7 +93,7 @@ def scene_scores(scene, cfg, args, tracker) -> tuple[dict, dict]:
     }
     if tracker is not None:
         trackers["C4D, DynPT tracker"] = tracker.track(scene.rgb)
-    base = MotionMaskConfig()
+    base = MotionMaskConfig(**dict(cfg.motion_mask.c4d))
     checks = {name: static_point_check(tracks, truth, base) for name, tracks in trackers.items()
               if name != "C4D, mobility ignored"}
     scores = {("every pixel dynamic", "-", "-", 0.0): mask_iou(np.ones_like(truth), truth)["iou"]}
@@ -106,7 +107,7 @@ def scene_scores(scene, cfg, args, tracker) -> tuple[dict, dict]:
                     trackers.items(), args.thresholds, args.noise_sigmas, args.judge_out_of_view):
                 mask_cfg = replace(base, sampson_threshold_px=threshold, max_pair_offset=max_offset,
                                    noise_sigmas=sigmas, judge_out_of_view=out_of_view)
-                masks = correspondence_motion_masks(tracks, flows, pairs, mask_cfg).masks
+                masks = correspondence_motion_masks(tracks, flows, pairs, mask_cfg, scene.rgb).masks
                 variant = name + (f", {sigmas:g} sigmas" if len(args.noise_sigmas) > 1 else "") + (
                     ", out of view judged" if out_of_view else "")
                 scores[(variant, flow_name, label, threshold)] = mask_iou(masks, truth)["iou"]
@@ -119,6 +120,7 @@ def scene_scores(scene, cfg, args, tracker) -> tuple[dict, dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", required=True, help="shards of generated scenes")
+    parser.add_argument("--skip", type=int, default=0, help="start after this many scenes of the shards")
     parser.add_argument("--max-scenes", type=int, default=8)
     parser.add_argument("--tracker", default=None, help="DynPT checkpoint for the real-tracker rows")
     parser.add_argument("--thresholds", type=floats, default=floats("0.5,1,2"), help="Sampson thresholds, pixels")
@@ -132,17 +134,19 @@ def main() -> None:
                         help="values of motion_mask noise_sigmas to sweep (default: the config's)")
     parser.add_argument("--judge-out-of-view", choices=("no", "yes", "both"), default="no")
     parser.add_argument("--per-scene", action="store_true", help="also print every scene's IoUs")
+    parser.add_argument("--config", default="default", help="configs/c4d/<name>.yaml: graph and mask settings")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="overrides of that config")
     args = parser.parse_args()
     args.noise_sigmas = args.noise_sigmas or [MotionMaskConfig().noise_sigmas]
     args.judge_out_of_view = {"no": [False], "yes": [True], "both": [False, True]}[args.judge_out_of_view]
-    cfg = load_config("c4d", "default")
+    cfg = load_config("c4d", args.config, overrides=args.overrides)
     tracker = None
     if args.tracker:
         from dynpt import load_tracker
 
         tracker = load_tracker(args.tracker)
     per_scene, all_checks, fractions = [], [], []
-    for scene in itertools.islice(read_scenes(args.scenes), args.max_scenes):
+    for scene in itertools.islice(read_scenes(args.scenes), args.skip, args.skip + args.max_scenes):
         start = time.process_time()
         scores, checks = scene_scores(scene, cfg, args, tracker)
         per_scene.append(scores)

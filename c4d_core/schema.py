@@ -349,6 +349,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "motion_mask.c4d.noise_sigmas": number(0.0), "motion_mask.c4d.judge_out_of_view": flag(),
         "motion_mask.c4d.forward_backward_px": number(0.0),
         "motion_mask.c4d.open_px": integer(0), "motion_mask.c4d.close_px": integer(0),
+        "motion_mask.c4d.temporal_neighbours": integer(0), "motion_mask.c4d.guided_radius_px": integer(0),
+        "motion_mask.c4d.guided_eps": number(above=0), "motion_mask.c4d.min_vote": number(above=0, high=1),
         "motion_mask.flow_only_threshold": fraction(),
         "outputs.ply_pixel_stride": COUNT, "outputs.ply_static_frame_stride": COUNT,
         "outputs.ply_min_confidence": number(0.0),

@@ -131,8 +131,8 @@ def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, fl
     if masks_from == "gt":
         masks = gt_masks
     else:
-        masks = correspondence_motion_masks(tracks, flows, pairs,
-                                            MotionMaskConfig(**dict(cfg.motion_mask.c4d))).masks
+        masks = correspondence_motion_masks(tracks, flows, pairs, MotionMaskConfig(**dict(cfg.motion_mask.c4d)),
+                                            scene.rgb).masks
     out: dict = {"mask_iou": mask_iou(masks, gt_masks)["iou"],
                  "moving_fraction": float(gt_masks.mean()),
                  "seconds": {"inputs": time.perf_counter() - start}, "optimiser_seconds": {}}

@@ -18,7 +18,15 @@ C4D's correspondence-guided mask, for every directed pair (t, t') of the scene g
      breaks the epipolar constraint as a moving object does);
   5. the mask of frame t is the union over all pairs (t, t') of the graph (optionally only
      those with |t - t'| <= `max_pair_offset`, for flows that fail on distant frames); then, where `open_px` / `close_px` > 0, a morphological opening (specks of
-     flow noise go) and closing (holes in objects fill) with squares of that side.
+     flow noise go) and closing (holes in objects fill) with squares of that side;
+  6. where `temporal_neighbours` n > 0 or `guided_radius_px` > 0, a vote refines the masks
+     (off by default, as the paper; `refine_masks`): frame t's score is the share of frames
+     t - n .. t + n whose masks call a pixel dynamic, each brought to frame t by the flow
+     t -> t' of the graph (frames without that pair do not vote); a colour guided filter (He,
+     Sun and Tang, ECCV 2010) with frame t as its guide, radius `guided_radius_px`, smooths the
+     score, so the mask's edges move to the frame's colour edges (an estimated flow such as DIS
+     smooths motion across the objects' outlines: its masks spill onto the background there and
+     stop short inside the objects); the mask is where the score is at least `min_vote`.
 Fallbacks, listed in `MotionMasks.pair_info` and logged in one line per call (once per process
 for the same pairs with the same static-point counts: two runs on one video, as `c4d demo`'s
 C4D and GA only, compute the same masks):
@@ -77,6 +85,10 @@ class MotionMaskConfig:
     forward_backward_px: float
     open_px: int
     close_px: int
+    temporal_neighbours: int
+    guided_radius_px: int
+    guided_eps: float
+    min_vote: float
 
 
 @dataclass
@@ -232,6 +244,51 @@ def forward_backward_error(flow: np.ndarray, back: np.ndarray) -> np.ndarray:
     return np.linalg.norm(flow + returned, axis=-1)
 
 
+def guided_filter(guide: np.ndarray, image: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    """He et al.'s colour guided filter: `image` float (H,W) smoothed within windows of side
+    2 radius + 1 by the local linear model image ~ a . guide + b, guide float (H,W,3) in [0, 1];
+    `eps` (in guide units squared) regularises a, so flat regions are averaged. -> float32 (H,W).
+    """
+    side = (2 * radius + 1, 2 * radius + 1)
+
+    def mean(x: np.ndarray) -> np.ndarray:  # the mean over each pixel's window, edges reflected
+        return cv2.boxFilter(x, -1, side)
+
+    guide, image = guide.astype(np.float32), image.astype(np.float32)
+    mean_guide, mean_image = mean(guide), mean(image)  # (H,W,3), (H,W)
+    covariance_gi = mean(guide * image[..., None]) - mean_guide * mean_image[..., None]  # (H,W,3)
+    variance = np.empty((*image.shape, 3, 3), np.float32)  # (H,W,3,3) of the guide's channels
+    for a in range(3):
+        for b in range(a, 3):
+            variance[..., a, b] = variance[..., b, a] = mean(guide[..., a] * guide[..., b]) - mean_guide[..., a] * mean_guide[..., b]
+    slope = np.linalg.solve(variance + eps * np.eye(3, dtype=np.float32), covariance_gi[..., None])[..., 0]  # (H,W,3)
+    offset = mean_image - np.sum(slope * mean_guide, -1)  # (H,W)
+    return np.sum(mean(slope) * guide, -1) + mean(offset)
+
+
+def refine_masks(masks: np.ndarray, flows: np.ndarray, index: dict[Pair, int], frames: np.ndarray | None,
+                 cfg: MotionMaskConfig) -> np.ndarray:
+    """Step 6 of the module doc: masks bool (T,H,W) voted over `temporal_neighbours` frames on
+    each side through flows (P,H,W,2) (index: pair (t, t') -> its row), smoothed by a guided
+    filter on frames uint8 (T,H,W,3) when `guided_radius_px` > 0, kept where >= `min_vote`."""
+    num_frames, height, width = masks.shape
+    grid = pixel_grid(height, width).astype(np.float32)  # (H,W,2)
+    refined = np.zeros_like(masks)
+    for t in range(num_frames):
+        votes, voters = masks[t].astype(np.float32), 1  # (H,W) dynamic votes, frames voting
+        for other in range(t - cfg.temporal_neighbours, t + cfg.temporal_neighbours + 1):
+            if other != t and (t, other) in index:  # frame t' seen from t through the flow t -> t'
+                landing = grid + flows[index[(t, other)]]  # (H,W,2) where t's pixels land in t'
+                votes += cv2.remap(masks[other].astype(np.float32), landing[..., 0], landing[..., 1],
+                                   cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                voters += 1
+        score = votes / voters  # (H,W) in [0, 1]
+        if cfg.guided_radius_px > 0:
+            score = guided_filter(frames[t] / np.float32(255), score, cfg.guided_radius_px, cfg.guided_eps)
+        refined[t] = score >= cfg.min_vote
+    return refined
+
+
 def _check_flows(flows: np.ndarray, pairs: Sequence[Pair], num_frames: int) -> None:
     if flows.ndim != 4 or flows.shape[-1] != 2 or flows.shape[0] != len(pairs):
         raise UserError(f"got flows of shape {flows.shape} for {len(pairs)} pairs; expected (P,H,W,2) with P = pairs")
@@ -249,17 +306,23 @@ def _warn_frames_without_pairs(pairs: Sequence[Pair], num_frames: int) -> None:
 
 
 def correspondence_motion_masks(
-    tracks, flows: np.ndarray, pairs: Sequence[Pair], cfg: MotionMaskConfig = MotionMaskConfig()
+    tracks, flows: np.ndarray, pairs: Sequence[Pair], cfg: MotionMaskConfig = MotionMaskConfig(),
+    frames: np.ndarray | None = None,
 ) -> MotionMasks:
     """C4D's motion masks (T,H,W) from a tracker result, flows (P,H,W,2) and their pairs (i, j).
 
     `tracks` has tracks (T,N,2), visible (T,N), confidence (T,N), moving (T,N) (dynpt's
     TrackResult, from the tracker or `ground_truth.oracle_tracks`); flows[p] is the flow from
     pairs[p][0] to pairs[p][1] at the tracker's pixel coordinates. Frame t's mask is the union
-    over the pairs that start at t.
+    over the pairs that start at t. `frames` uint8 (T,H,W,3), the video the flows were estimated
+    on, guide step 6's filter (needed only when `guided_radius_px` > 0).
     """
     num_frames = track_arrays(tracks)["tracks"].shape[0]
     _check_flows(flows, pairs, num_frames)
+    if cfg.guided_radius_px > 0 and (frames is None or frames.shape[:3] != (num_frames, *flows.shape[1:3])):
+        raise UserError(f"motion_mask.c4d.guided_radius_px={cfg.guided_radius_px} needs the video's frames "
+                        f"({num_frames},{flows.shape[1]},{flows.shape[2]},3) beside the flows; pass frames= "
+                        "or set guided_radius_px=0")
     index = {(int(i), int(j)): p for p, (i, j) in enumerate(pairs)}
     pair_masks, infos = [], []
     for flow, (i, j) in zip(flows, pairs):
@@ -290,6 +353,8 @@ def correspondence_motion_masks(
         if size > 0:
             kernel = np.ones((size, size), np.uint8)
             masks = np.stack([cv2.morphologyEx(m.astype(np.uint8), operation, kernel) > 0 for m in masks])
+    if cfg.temporal_neighbours > 0 or cfg.guided_radius_px > 0:
+        masks = refine_masks(masks, flows, index, frames, cfg)
     _warn_frames_without_pairs([info["pair"] for info in infos], num_frames)
     return MotionMasks(masks, infos)
 

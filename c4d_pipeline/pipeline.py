@@ -81,7 +81,7 @@ def estimate_motion_masks(frames, edges, flows, tracker_result, pw, cfg,
     pairs = [tuple(map(int, e)) for e in edges]
     if tracker_result is not None:
         mcfg = mm.MotionMaskConfig(**to_dict(cfg.motion_mask.c4d))
-        return mm.correspondence_motion_masks(tracker_result, flows, pairs, mcfg).masks, "dynpt+flow"
+        return mm.correspondence_motion_masks(tracker_result, flows, pairs, mcfg, frames).masks, "dynpt+flow"
     log.warning("no tracker result: motion masks from the flow-only baseline, stage 2 (PTS) skipped")
     init = initialise(pw, frames.shape[0], shared_focal=cfg.optim.shared_focal,
                       intrinsics=None if intrinsics is None else torch.from_numpy(intrinsics))

@@ -17,6 +17,7 @@ from c4d_pipeline.motion_mask import (
     correspondence_motion_masks,
     ego_flow,
     flow_only_motion_masks,
+    guided_filter,
     pair_motion_mask,
     pairwise_ego_flow,
     sampson_distance,
@@ -206,6 +207,65 @@ def test_opening_removes_specks_and_closing_fills_holes(scene, graph):
     cleaned = correspondence_motion_masks(tracks, speck, pairs, replace(MotionMaskConfig(), open_px=3, close_px=3)).masks
     assert plain[:, 35, 8].any() and not cleaned[:, 35, 8].any()
     assert mask_iou(cleaned, truth)["iou"] > 0.9
+
+
+def test_guided_filter_moves_a_spilled_mask_onto_the_object():
+    """A mask that spills 3 px onto a textured floor around a coloured object and misses a bite
+    inside it (what DIS's smoothed flow gives) is brought back to the object's outline."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.standard_normal((96, 128)).astype(np.float32), (0, 0), 2.0)
+    frame = np.clip(110 + 60 * texture[..., None] * np.array([1.0, 0.9, 1.1]), 0, 255)  # (H,W,3)
+    obj = np.zeros((96, 128), np.uint8)
+    cv2.ellipse(obj, (64, 48), (28, 16), 20, 0, 360, 1, -1)
+    obj = obj > 0
+    frame[obj] = (200, 60, 40)
+    spilled = cv2.dilate(obj.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    spilled[44:52, 60:68] = False  # a hole inside the object
+    refined = guided_filter(frame / 255, spilled.astype(np.float32), radius=11, eps=1e-3) >= 0.5
+    assert mask_iou(spilled, obj)["iou"] < 0.7
+    assert mask_iou(refined, obj)["iou"] > 0.95
+    assert refined[44:52, 60:68].all(), "the hole inside the object is filled"
+
+
+def test_temporal_vote_drops_a_one_frame_speck_and_restores_a_missed_frame(scene):
+    """With the neighbouring frames voting (their masks brought over by exact flow), a speck of
+    nonsense flow in one frame goes, and a frame whose own pairs missed the box gets it back."""
+    from dataclasses import replace
+
+    from c4d_pipeline.motion_mask import refine_masks
+
+    pairs = [(t, t + d) for t in range(scene.num_frames) for d in (-1, 1) if 0 <= t + d < scene.num_frames]
+    flows = build_flow("gt", scene=scene).flow(scene.rgb, pairs)
+    tracks, truth = oracle_tracks(scene), ground_truth_motion_masks(scene)
+    cfg = replace(MotionMaskConfig(), temporal_neighbours=1)
+    speck = flows.copy()
+    for p, (i, _) in enumerate(pairs):
+        if i == 2:
+            speck[p, 35:37, 8:10] += (5.0, -4.0)  # nonsense flow on the floor, in frame 2's pairs only
+    plain = correspondence_motion_masks(tracks, speck, pairs).masks
+    voted = correspondence_motion_masks(tracks, speck, pairs, cfg).masks
+    assert plain[2, 35:37, 8:10].all() and not voted[2, 35:37, 8:10].any()
+    assert mask_iou(voted, truth)["iou"] > 0.9
+
+    missed = truth.copy()
+    missed[3] = False  # frame 3's own pairs saw nothing
+    index = {pair: p for p, pair in enumerate(pairs)}
+    restored = refine_masks(missed, flows, index, None, cfg)
+    assert mask_iou(restored[3], truth[3])["iou"] > 0.85
+    assert mask_iou(restored, truth)["iou"] > 0.85
+
+
+def test_guided_refinement_needs_the_frames(scene, graph):
+    from dataclasses import replace
+
+    pairs, flows = graph
+    cfg = replace(MotionMaskConfig(), guided_radius_px=4)
+    with pytest.raises(UserError, match="needs the video's frames"):
+        correspondence_motion_masks(oracle_tracks(scene), flows, pairs, cfg)
+    masks = correspondence_motion_masks(oracle_tracks(scene), flows, pairs, cfg, scene.rgb).masks
+    assert mask_iou(masks, ground_truth_motion_masks(scene))["iou"] > 0.9
 
 
 def test_flow_is_sampled_at_any_number_of_points():
