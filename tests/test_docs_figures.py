@@ -86,7 +86,7 @@ def test_the_records_are_one_run():
 def test_readme_quotes_the_run():
     rec, text = records(), section("README.md")
     seconds = step_seconds()
-    times = one(text, r"\(load 4-8; data (\d+) s, train (\d+) s, eval (\d+) s, paper-eval (\d+) s, "
+    times = one(text, r"\(data (\d+) s, train (\d+) s, eval (\d+) s, paper-eval (\d+) s, "
                       r"recon-data (\d+) s, reconstruct (\d+) s, pictures (\d+) s\)")
     assert times == tuple(f"{seconds[s]:.0f}" for s in STEPS)
 
