@@ -5,9 +5,9 @@
         [--flows gt,dis] [--pair-sets all,1] [--no-flow-only] [--noise-sigmas 4]
         [--judge-out-of-view both] [--per-scene] [--config default] [key=value ...]
 
-For every scene (the scene graph of configs/c4d/<--config>.yaml, whose motion_mask.c4d settings,
-with the key=value overrides of that config, are the masks' own besides the swept ones) and every flow (exact 'gt' and
-'dis', or any `build_flow` spec such as 'dis:fast'), the masks of
+For every scene (the scene graph of configs/c4d/<--config>.yaml with its key=value overrides,
+whose motion_mask.c4d settings the masks keep but for the swept ones) and every flow (exact 'gt'
+and 'dis', or any `build_flow` spec such as 'dis:fast'), the masks of
   - C4D (sec. 3.2.2) with an ORACLE tracker: the scene's own tracks and mobility labels;
   - C4D with the oracle's tracks but every mobility set to static (what DynPT's mobility adds
     beyond LMedS's own robustness to moving points);
@@ -137,9 +137,9 @@ def main() -> None:
     parser.add_argument("--config", default="default", help="configs/c4d/<name>.yaml: graph and mask settings")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="overrides of that config")
     args = parser.parse_args()
-    args.noise_sigmas = args.noise_sigmas or [MotionMaskConfig().noise_sigmas]
-    args.judge_out_of_view = {"no": [False], "yes": [True], "both": [False, True]}[args.judge_out_of_view]
     cfg = load_config("c4d", args.config, overrides=args.overrides)
+    args.noise_sigmas = args.noise_sigmas or [cfg.motion_mask.c4d.noise_sigmas]
+    args.judge_out_of_view = {"no": [False], "yes": [True], "both": [False, True]}[args.judge_out_of_view]
     tracker = None
     if args.tracker:
         from dynpt import load_tracker
