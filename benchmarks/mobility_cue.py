@@ -31,7 +31,7 @@ import torch
 
 from c4d_core.config import load_config
 from c4d_core.files import write_text
-from c4d_pipeline.motion_mask import fundamental_lmeds, sampson_distance
+from c4d_core.epipolar import fundamental_lmeds, sampson_distance
 from dynpt.evaluate import load_source, mobility_counted, track_item
 from dynpt.inference import load_tracker
 from dynpt.metrics import average_precision, roc_auc

@@ -269,20 +269,30 @@ def readme_pictures(pictures: Path) -> Path:
 
 
 def _score(checkpoint: str, sources: dict[str, Path], eval_cfg) -> dict:
-    """preset -> the tracker's and the all-static baseline's summaries on `sources[preset]`, and
-    the 95 % interval of their D-ACC difference, evaluated as `eval_cfg` says."""
+    """preset -> the summaries of the tracker with its head's mobility ("dynpt"), with the head
+    fused with the tracks' epipolar geometry ("dynpt_epipolar", `eval_cfg.epipolar`; the same
+    tracks) and of the all-static baseline on `sources[preset]`, and the 95 % intervals of the
+    D-ACC differences from the baseline, evaluated as `eval_cfg` says."""
     from dynpt.baselines import ZeroMotionBaseline
-    from dynpt.evaluate import d_acc_difference_interval, evaluate_items, load_source, protocol_query_mode
+    from dynpt.evaluate import (d_acc_difference_interval, evaluate_items, load_source,
+                                protocol_query_mode, score_items, track_item)
     from dynpt.inference import load_tracker
+    from dynpt.track_mobility import EpipolarMobility, fused_result
 
     tracker, mode = load_tracker(checkpoint), protocol_query_mode(eval_cfg)
+    settings = EpipolarMobility(**eval_cfg.epipolar)
     results = {}
     for preset, source in sources.items():
         items, _ = load_source(str(source), eval_cfg)
-        ours = evaluate_items(tracker, items, mode)
+        tracked = [track_item(tracker, item, mode) for item in items]
+        ours = score_items(items, tracked, mode)
+        fused = score_items(items, [None if t is None else (*t[:2], fused_result(t[2], settings))
+                                    for t in tracked], mode)
         baseline = evaluate_items(ZeroMotionBaseline(), items, mode)
-        results[preset] = {"dynpt": ours["summary"], "zero_motion": baseline["summary"],
-                           "d_acc_interval": d_acc_difference_interval(ours, baseline)}
+        results[preset] = {"dynpt": ours["summary"], "dynpt_epipolar": fused["summary"],
+                           "zero_motion": baseline["summary"],
+                           "d_acc_interval": d_acc_difference_interval(ours, baseline),
+                           "dynpt_epipolar_d_acc_interval": d_acc_difference_interval(fused, baseline)}
     return results
 
 
@@ -301,19 +311,28 @@ def _pct(value) -> str:
     return "n/a" if value is None else f"{100 * value:.1f}"
 
 
-def _tracker_verdict(results: dict) -> list[str]:
-    """One line per metric saying, in points, whether DynPT beats the zero-motion baseline. Where
-    the 95 % interval of the difference over the val scenes is known (D-ACC), "yes" only when
-    every val set's interval is above 0, "no" when all are below, otherwise that the difference
-    is within the scene-to-scene variation; without intervals, by the sign of the differences."""
+TRACKER_ROWS = {"dynpt": "DynPT (trained here)",
+                "dynpt_epipolar": "DynPT, head + epipolar mobility"}  # records' key -> row name
+
+
+def _tracker_verdict(results: dict, variant: str = "dynpt") -> list[str]:
+    """One line per metric saying, in points, whether the tracker (`variant`, a key of
+    TRACKER_ROWS) beats the zero-motion baseline. Where the 95 % interval of the difference over
+    the val scenes is known (D-ACC), "yes" only when every val set's interval is above 0, "no"
+    when all are below, otherwise that the difference is within the scene-to-scene variation;
+    without intervals, by the sign of the differences. AJ only for the head's row (the fused
+    mobility has the same tracks)."""
     from dynpt.evaluate import interval_verdict, signed
 
+    prefix = "" if variant == "dynpt" else f"{variant}_"
+    metrics = [("d_acc", "D-ACC"), ("d_acc_balanced", "balanced D-ACC")]
+    metrics += [("average_jaccard", "AJ")] if variant == "dynpt" else []
     lines = []
-    for key, label in (("d_acc", "D-ACC"), ("d_acc_balanced", "balanced D-ACC"),
-                       ("average_jaccard", "AJ")):
-        diffs = {p: 100 * (r["dynpt"][key] - r["zero_motion"][key]) for p, r in results.items()}
+    for key, label in metrics:
+        diffs = {p: 100 * (r[variant][key] - r["zero_motion"][key]) for p, r in results.items()}
         text = ", ".join(f"{p} {signed(d)}" for p, d in diffs.items()) + " points"
-        intervals = {p: r[f"{key}_interval"] for p, r in results.items() if f"{key}_interval" in r}
+        intervals = {p: r[f"{prefix}{key}_interval"] for p, r in results.items()
+                     if f"{prefix}{key}_interval" in r}
         if intervals:
             text += "; 95 % interval over the val scenes: " + ", ".join(
                 f"{p} {signed(100 * low)} to {signed(100 * high)}" for p, (low, high) in intervals.items())
@@ -322,21 +341,25 @@ def _tracker_verdict(results: dict) -> list[str]:
                        else "within the scene-to-scene variation")
         else:
             verdict = "yes" if all(d > 0 for d in diffs.values()) else "no"
-        lines.append(f"- DynPT above the baseline on {label}: **{verdict}** ({text})")
+        name = "DynPT" if variant == "dynpt" else TRACKER_ROWS[variant]
+        lines.append(f"- {name} above the baseline on {label}: **{verdict}** ({text})")
     return lines
 
 
 def _tracker_table(results: dict) -> list[str]:
-    """The tracker's and the baseline's rows per val set (percent), then the verdict lines."""
+    """The tracker's rows (its head's mobility, and fused with the tracks' epipolar geometry
+    where the records have it) and the baseline's per val set (percent), then the verdicts."""
     keys = ("d_acc", "d_acc_moving", "d_acc_static", "d_acc_balanced", "moving_ap",
             "average_jaccard", "average_pts_within_thresh", "occlusion_accuracy")
     lines = ["| val set | tracker | D-ACC | D-ACC moving | D-ACC static | D-ACC balanced | AP moving "
              "| AJ | <δ avg | OA |", "|---|---|---|---|---|---|---|---|---|---|"]
+    variants = [v for v in TRACKER_ROWS if all(v in r for r in results.values())]
     for preset, result in results.items():
-        for name, s in (("DynPT (trained here)", result["dynpt"]),
-                        ("zero motion, all static", result["zero_motion"])):
+        for name, s in [*((TRACKER_ROWS[v], result[v]) for v in variants),
+                        ("zero motion, all static", result["zero_motion"])]:
             lines.append(f"| {preset} | {name} | " + " | ".join(_pct(s.get(k)) for k in keys) + " |")
-    return [*lines, "", *_tracker_verdict(results)]
+    verdicts = [line for v in variants for line in _tracker_verdict(results, v)]
+    return [*lines, "", *verdicts]
 
 
 def summary_markdown(records: dict) -> str:

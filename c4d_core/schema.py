@@ -317,6 +317,9 @@ RULES: dict[str, dict[str, Rule]] = {
         "eval.query_mode": text("first", "strided"), "eval.best_metric": text(),
         "eval.protocol": text("scene", "c4d-paper"), "eval.mobility_rule": text("point", "object"),
         "eval.foreign": text("refuse", "skip"),
+        "eval.mobility": text("head", "epipolar"), "eval.epipolar.offset": integer(1),
+        "eval.epipolar.window": integer(0), "eval.epipolar.quantile": number(0, 100),
+        "eval.epipolar.head_weight": number(0), "eval.epipolar.residual_sigmas": number(above=0),
     },
     "c4d": {
         "seed": SEED, "device": device(), "threads": POSITIVE, "flow": text(),

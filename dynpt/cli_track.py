@@ -44,6 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(bounds memory; default all together)")
     parser.add_argument("--support-grid", type=int, default=0, help="also track an NxN grid of "
                         "frame-0 points with the queries, then drop them (CoTracker3's predictor: 6) [0]")
+    parser.add_argument("--mobility", choices=("head", "epipolar"), default="head",
+                        help="where the points' moving probability comes from: the network's head, "
+                        "or the head fused with the tracks' epipolar geometry pooled over time "
+                        "(dynpt/track_mobility.py; the settings of configs/dynpt eval.epipolar) [head]")
     parser.add_argument("--no-backward", action="store_true",
                         help="track only forward from each query frame")
     parser.add_argument("--device", help="torch device (default: cuda if available, else cpu)")
@@ -76,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from c4d_core.draw import draw_tracks_enlarged
     from c4d_core.video import read_video, resize_long_side, video_fps, write_user_video
     from dynpt.inference import load_tracker
+    from dynpt.track_mobility import EpipolarMobility, FusedMobilityTracker
 
     for flag in ("grid_size", "max_points", "points", "size", "max_size"):
         value = getattr(args, flag)
@@ -103,6 +108,8 @@ def run(args: argparse.Namespace) -> int:
         queries[:, 2] = rescale_pixels(queries[:, 2], sy)
     grid = grid_for_budget(H, W, args.grid_size, args.points)
     tracker = load_tracker(args.ckpt, args.device)
+    if args.mobility == "epipolar":
+        tracker = FusedMobilityTracker(tracker, EpipolarMobility())
     out = Path(args.out)
     check_folder(out, "track", args.overwrite)  # before the work
     log.info("tracking %s points through %d frames of %dx%d (source %dx%d) on %s",

@@ -256,15 +256,20 @@ def evaluate_items(tracker, items: list[dict], query_mode: str) -> dict:
 
     Returns {'summary': {key: float}, 'per_video': [{name, metrics...}], 'example': {...}}.
     """
+    return score_items(items, [track_item(tracker, item, query_mode) for item in items], query_mode)
+
+
+def score_items(items: list[dict], tracked: list, query_mode: str) -> dict:
+    """`evaluate_items`'s scores of `items` from their `track_item` results `tracked` (one per
+    item, None where nothing was tracked), so one tracking pass can be scored more than once."""
     per_video, correct = [], {"moving": [0, 0], "static": [0, 0]}  # split -> [right, counted]
     scores, labels = [], []  # the counted pairs' "moving" probabilities and truths
     metrics_mode = "strided" if query_mode == "sampled" else query_mode  # every frame but the query's
     example = None
-    for item in items:
-        tracked = track_item(tracker, item, query_mode)
-        if tracked is None:
+    for item, done in zip(items, tracked):
+        if done is None:
             continue
-        query_points, index, result = tracked
+        query_points, index, result = done
         gt_tracks = swap_track_axes(item["tracks"][:, index])[None]  # (1,M,T,2)
         gt_occ = swap_track_axes(item["occluded"][:, index])[None]  # (1,M,T)
         pred_occ = ~swap_track_axes(result.visible)[None]  # (1,M,T)

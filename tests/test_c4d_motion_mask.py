@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from c4d_core.epipolar import sampson_distance
 from c4d_core.errors import UserError
 from c4d_core.geometry import pixel_grid
 from c4d_pipeline.eval_metrics import mask_iou
@@ -20,7 +21,6 @@ from c4d_pipeline.motion_mask import (
     guided_filter,
     pair_motion_mask,
     pairwise_ego_flow,
-    sampson_distance,
 )
 from c4d_pipeline.scene_graph import strided_window_pairs
 from tests.synthetic_scenes import make_box_scene

@@ -25,6 +25,11 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
     paper = json.loads((demo_out / "paper-eval" / "eval.json").read_text())
     assert set(paper) == {"movi-e", "movi-e-panning"}
     assert all(r["dynpt"]["num_videos"] == 1 and 0 <= r["dynpt"]["moving_ap"] <= 1 for r in paper.values())
+    # the same tracks with the head fused with their epipolar geometry: another mobility, same AJ
+    for r in paper.values():
+        assert r["dynpt_epipolar"]["average_jaccard"] == r["dynpt"]["average_jaccard"]
+        assert len(r["dynpt_epipolar_d_acc_interval"]) == 2
+    assert summary.count("| DynPT, head + epipolar mobility |") == 4  # 2 presets x 2 tables
     assert "## Tracker, the paper's D-ACC protocol" in summary and "with 24 frames at 32x32" in summary
     for name in ("frames", "depth", "masks", "poses_tum.txt", "scene.ply", "report.json"):
         assert (demo_out / "reconstruct" / "scene-000" / "c4d" / name).exists()
@@ -82,6 +87,12 @@ def test_verdict_says_yes_only_when_every_val_set_is_above_the_baseline():
                      "movi-e +0.0 to +2.6, movi-e-panning +1.0 to +7.0)")
     results["movi-e"]["d_acc_interval"] = [0.002, 0.026]
     assert "D-ACC: **yes** (" in _tracker_verdict(results)[0]
+    # the fused mobility's rows: its own intervals, no AJ line (the same tracks)
+    for r in results.values():
+        r["dynpt_epipolar"], r["dynpt_epipolar_d_acc_interval"] = dict(both, d_acc=0.8), [-0.2, -0.01]
+    lines = _tracker_verdict(results, "dynpt_epipolar")
+    assert len(lines) == 2 and lines[0].startswith(
+        "- DynPT, head + epipolar mobility above the baseline on D-ACC: **no** (movi-e -11.0")
 
 
 def test_every_run_folder_keeps_its_resolved_config(demo_out):

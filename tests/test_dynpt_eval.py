@@ -111,6 +111,16 @@ def test_eval_cli_writes_json_and_markdown(tmp_path, davis_pickle, capsys):
     assert table in capsys.readouterr().out
     assert "| checkpoint | 2 | 0 |" in table and "| zero motion, all static | 2 | 0 |" in table
     assert "D-ACC minus all-static:" in table and "95 % interval over the videos" in table
+    # the same tracks, their mobility fused with their epipolar geometry (dynpt/track_mobility.py)
+    fused = tmp_path / "eval-epipolar"
+    assert main(["eval", "--ckpt", str(ckpt), "--data", str(shards), "--out", str(fused),
+                 "--config", "tiny-cpu", "eval.resolution=[32,32]", "eval.num_tracks=8",
+                 "eval.num_scenes=2", "eval.mobility=epipolar", "eval.epipolar.head_weight=0"]) == 0
+    fused_report = json.loads((fused / "eval.json").read_text())
+    assert fused_report["info"]["mobility"] == "epipolar"
+    assert fused_report["info"]["epipolar"]["head_weight"] == 0
+    assert fused_report["summary"]["average_jaccard"] == s["average_jaccard"]
+    assert "eval.mobility=epipolar" in (fused / "eval.md").read_text()
     out2 = tmp_path / "eval-davis"
     assert main(["eval", "--ckpt", str(ckpt), "--data", str(davis_pickle), "--mode", "strided",
                  "--out", str(out2), "--config", "tiny-cpu", "eval.resolution=[64,64]"]) == 0

@@ -146,6 +146,12 @@ def test_c4d_track_end_to_end(tmp_path, capsys):
     assert data["moving"].shape == data["confidence"].shape == (6, 12)
     overlay = read_video(out / "overlay.mp4")
     assert overlay.shape == (6, 280 + 26, 392, 3)  # enlarged 7x to at least 256 rows, + the key strip
+    fused = tmp_path / "fused"  # the same tracks, the head fused with their epipolar geometry
+    assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(fused), "--grid-size", "20",
+                 "--mobility", "epipolar"]) == 0
+    other = np.load(fused / "tracks.npz")
+    np.testing.assert_array_equal(other["tracks"], data["tracks"])
+    assert ((other["moving"] >= 0) & (other["moving"] <= 1)).all()  # fusion: tests/test_track_mobility.py
     queries = tmp_path / "q.txt"
     np.savetxt(queries, [[2, 10, 10], [0, 30, 20]])
     assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(out), "--queries", str(queries)]) == 0

@@ -1,0 +1,123 @@
+"""A track's "moving" probability from its epipolar geometry over time, fused with the head's.
+
+D-ACC's label is geometric: a point moves at frame t when its world point moved since frame t-1.
+A static point's track stays on the epipolar lines the camera's motion gives; a moving point's
+leaves them. Frame by frame this cue is as noisy as the tracks (a tracker off by 1 px hides a
+point moving 1 px a frame), so here it is pooled over time, as trajectory-level motion
+segmentation does (ParticleSFM): the points of a moving object keep leaving the epipolar lines.
+
+For a video's tracks (T,N,2):
+  1. per frame pair (a, a + offset): the fundamental matrix of all tracks visible in both, by
+     LMedS (`c4d_core.epipolar`, as C4D's masks fit it), and each track's Sampson distance to it
+     in units of the pair's robust residual sigma (so the cue does not depend on the frame size
+     or on how well this tracker tracks);
+  2. per frame t: the `quantile` of a track's distances over the pairs that start within
+     `window` frames of t (both ends visible), g (sigmas), and the mean of the head's logits over
+     the frames within `window` of t where the track is visible, h;
+  3. the fused logit  head_weight * h + log(g / residual_sigmas): with an undecided head (h = 0)
+     a point is called moving when g > residual_sigmas.
+Where a track has no visible pair within the window (or no matrix was found, e.g. fewer than 8
+tracks), the frame keeps the head's own probability. Frames the tracker did not predict stay NaN.
+
+The defaults are chosen on held-out generated scenes that no reported figure uses
+(docs/results/demo_mobility.md, "Pooling the epipolar cue over time").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from c4d_core.config import defaults_from
+from c4d_core.epipolar import fundamental_lmeds, sampson_distance
+
+@dataclass(frozen=True)
+@defaults_from("dynpt", "eval.epipolar")
+class EpipolarMobility:
+    """Settings of the fused mobility: the keys of the dynpt configs' `eval.epipolar`, where each
+    is explained; the defaults are that file's (the schema's)."""
+
+    offset: int  # frames between the two ends of a pair
+    window: int  # frames on each side of t whose pairs and head logits are pooled
+    quantile: float  # percent, of a track's distances over the pooled pairs
+    head_weight: float  # weight of the head's mean logit (0: geometry alone)
+    residual_sigmas: float  # distance (pair sigmas) at which geometry alone is undecided
+
+
+def pair_distances(tracks: np.ndarray, visible: np.ndarray, offset: int, seed: int = 0) -> np.ndarray:
+    """float (T,N): row a holds each track's Sampson distance between frames a and a + offset to
+    the fundamental matrix of all tracks visible in both, in units of that fit's robust sigma;
+    NaN where the track is not visible in both, where no matrix is found, and for a > T - 1 - offset.
+    tracks (T,N,2) px, visible bool (T,N)."""
+    T, N = visible.shape
+    distance = np.full((T, N), np.nan)
+    for a in range(T - offset):
+        both = visible[a] & visible[a + offset]  # (N,)
+        fit = fundamental_lmeds(tracks[a, both], tracks[a + offset, both], seed + a)
+        if fit is None:
+            continue
+        fundamental, sigma = fit
+        row = sampson_distance(fundamental, tracks[a], tracks[a + offset]) / max(sigma, 1e-6)
+        distance[a] = np.where(both, row, np.nan)
+    return distance
+
+
+def _window_nan_stat(values: np.ndarray, window: int, reach: int, stat) -> np.ndarray:
+    """(T,N): `stat` over rows max(0, t - window) .. min(T - 1, t + window - reach) of values
+    (T,N) (row a spans frames a .. a + reach), NaN where all of them are NaN."""
+    T = len(values)
+    out = np.full(values.shape, np.nan)
+    for t in range(T):
+        rows = values[max(0, t - window): max(0, min(T - 1, t + window - reach) + 1)]
+        seen = np.isfinite(rows).any(0)  # (N,)
+        if seen.any():
+            out[t, seen] = stat(rows[:, seen])
+    return out
+
+
+def fuse_mobility(tracks: np.ndarray, visible: np.ndarray, moving: np.ndarray,
+                  settings: EpipolarMobility, seed: int = 0) -> np.ndarray:
+    """float32 (T,N) probability that each point moves, from tracks (T,N,2) px, visible bool
+    (T,N) and the head's probability moving (T,N) (NaN where not predicted); see the module."""
+    tracks = tracks.astype(np.float64)
+    p = np.clip(moving, 1e-4, 1 - 1e-4)
+    head = np.log(p / (1 - p))  # (T,N) logits
+    distance = pair_distances(tracks, visible, settings.offset, seed)  # (T,N)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = _window_nan_stat(distance, settings.window, settings.offset,
+                             lambda r: np.nanpercentile(r, settings.quantile, axis=0))
+        h = _window_nan_stat(np.where(visible, head, np.nan), settings.window, 0,
+                             lambda r: np.nanmean(r, axis=0))
+        geometry = np.log(np.maximum(g, 1e-6) / settings.residual_sigmas)
+    fused = np.where(np.isfinite(g), np.nan_to_num(settings.head_weight * h) + geometry, head)
+    return np.where(np.isfinite(moving), 1 / (1 + np.exp(-fused)), np.nan).astype(np.float32)
+
+
+class FusedMobilityTracker:
+    """A tracker whose results carry `fuse_mobility`'s probability in place of the head's; tracks,
+    visibility and confidence are the wrapped tracker's."""
+
+    def __init__(self, tracker, settings: EpipolarMobility, seed: int = 0):
+        self.tracker, self.settings, self.seed = tracker, settings, seed
+
+    def __getattr__(self, name: str):  # the wrapped tracker's device, model, ...
+        return getattr(self.tracker, name)
+
+    def track(self, *args, **kwargs):
+        return fused_result(self.tracker.track(*args, **kwargs), self.settings, self.seed)
+
+
+def fused_result(result, settings: EpipolarMobility, seed: int = 0):
+    """`result` (a `dynpt.inference.TrackResult`) with `fuse_mobility`'s probability as its
+    `moving`; its tracks, visibility and confidence unchanged."""
+    return replace(result, moving=fuse_mobility(result.tracks, result.visible, result.moving,
+                                                settings, seed))
+
+
+def mobility_tracker(tracker, eval_cfg):
+    """`tracker` as `eval_cfg.mobility` says: itself for 'head', else a `FusedMobilityTracker`
+    with `eval_cfg.epipolar`'s settings."""
+    if eval_cfg.get("mobility", "head") == "head":
+        return tracker
+    return FusedMobilityTracker(tracker, EpipolarMobility(**eval_cfg.epipolar))

@@ -1,0 +1,90 @@
+"""dynpt/track_mobility.py: a track's epipolar residual pooled over time calls the points of a
+sliding box moving through tracking noise that hides them frame by frame, and fuses with the head."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.mobility_cue import epipolar_cue, ranking
+from c4d_core.config import load_config
+from c4d_core.errors import UserError
+from dynpt.inference import TrackResult
+from dynpt.track_mobility import EpipolarMobility, FusedMobilityTracker, fuse_mobility, pair_distances
+from tests.synthetic_scenes import make_box_scene
+
+UNDECIDED = 0.5  # a head that says nothing
+GEOMETRY_ALONE = 2.0  # residual_sigmas for head_weight 0 (the config's comment)
+
+
+def box_tracks(noise_px: float, moving: bool = True, seed: int = 3):
+    scene = make_box_scene(num_frames=16, height=96, width=128, num_tracks=256, seed=seed, moving=moving)
+    clip = scene.tracks_time_major()
+    tracks = clip["tracks"].astype(np.float64)
+    tracks = tracks + np.random.default_rng(seed).normal(0.0, noise_px, tracks.shape)
+    return tracks, ~clip["occluded"], clip["moving"]
+
+
+def balanced(called: np.ndarray, labels: np.ndarray) -> float:
+    return (called[labels].mean() + (~called[~labels]).mean()) / 2
+
+
+def test_pooling_over_time_sees_the_sliding_box_through_noise_the_per_frame_cue_does_not():
+    tracks, visible, moving = box_tracks(noise_px=0.5)
+    assert 0.02 < moving[visible].mean() < 0.6
+    per_frame = ranking(epipolar_cue(tracks, visible)[visible], moving[visible])
+    geometry = EpipolarMobility(head_weight=0.0, residual_sigmas=GEOMETRY_ALONE)
+    fused = fuse_mobility(tracks, visible, np.full(visible.shape, UNDECIDED, np.float32), geometry)
+    pooled = ranking(fused[visible], moving[visible])
+    assert per_frame["auc"] < 0.75 and pooled["auc"] > 0.95, (per_frame, pooled)
+    assert balanced(fused[visible] > 0.5, moving[visible]) > 0.85
+
+
+def test_a_static_scene_is_called_static_and_the_head_weighs_in():
+    tracks, visible, _ = box_tracks(noise_px=0.5, moving=False)
+    head = np.full(visible.shape, UNDECIDED, np.float32)
+    geometry = EpipolarMobility(head_weight=0.0, residual_sigmas=GEOMETRY_ALONE)
+    assert (fuse_mobility(tracks, visible, head, geometry)[visible] < 0.5).mean() > 0.9
+    static_head = np.full(visible.shape, 0.02, np.float32)  # a trained head on static points
+    assert (fuse_mobility(tracks, visible, static_head, EpipolarMobility())[visible] < 0.5).mean() > 0.9
+    sure = np.full(visible.shape, 0.999, np.float32)  # a head sure of motion outweighs geometry
+    loud = EpipolarMobility(head_weight=2.0)
+    assert (fuse_mobility(tracks, visible, sure, loud)[visible] > 0.5).all()
+
+
+def test_frames_not_predicted_stay_nan_and_too_few_tracks_keep_the_head():
+    tracks, visible, _ = box_tracks(noise_px=0.5)
+    head = np.full(visible.shape, 0.8, np.float32)
+    head[:3, :10] = np.nan  # not predicted (e.g. before the query frame without backward tracking)
+    fused = fuse_mobility(tracks, visible, head, EpipolarMobility())
+    assert np.isnan(fused[:3, :10]).all() and np.isfinite(fused[3:]).all()
+    few = fuse_mobility(tracks[:, :5], visible[:, :5], head[:, :5], EpipolarMobility(head_weight=0.0))
+    assert np.isnan(pair_distances(tracks[:, :5], visible[:, :5], 3)).all()  # no matrix from 5 tracks
+    np.testing.assert_allclose(few[3:], 0.8, atol=1e-6)  # no geometry, no weight: the head's own
+
+
+class FixedTracker:
+    device = "cpu"
+
+    def __init__(self, result: TrackResult):
+        self.result = result
+
+    def track(self, video, queries=None, **kwargs) -> TrackResult:
+        return self.result
+
+
+def test_the_wrapper_changes_only_mobility_and_the_config_is_checked():
+    tracks, visible, _ = box_tracks(noise_px=0.5)
+    result = TrackResult(tracks=tracks.astype(np.float32), visible=visible,
+                         confidence=np.ones(visible.shape, np.float32),
+                         moving=np.full(visible.shape, UNDECIDED, np.float32),
+                         queries=np.zeros((visible.shape[1], 3), np.float32))
+    wrapped = FusedMobilityTracker(FixedTracker(result), EpipolarMobility())
+    out = wrapped.track(None)
+    assert wrapped.device == "cpu"
+    assert out.tracks is result.tracks and out.visible is result.visible
+    assert not np.allclose(out.moving, result.moving)
+    with pytest.raises(UserError, match="eval.epipolar.offset"):
+        load_config("dynpt", "tiny-cpu", overrides=["eval.epipolar.offset=0"])
+    with pytest.raises(UserError, match="eval.mobility"):
+        load_config("dynpt", "tiny-cpu", overrides=["eval.mobility=flow"])
