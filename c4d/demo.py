@@ -152,10 +152,12 @@ class Demo:
         scenes' own tracks queried at their first visible frame."""
         eval_cfg = load_config("dynpt", self.cfg.train.config, overrides=[
             f"eval.num_tracks={self.cfg.eval.num_tracks}", "eval.num_scenes=0",
-            f"eval.resolution=[{self.cfg.data.resolution[0]},{self.cfg.data.resolution[1]}]"]).eval
+            f"eval.resolution=[{self.cfg.data.resolution[0]},{self.cfg.data.resolution[1]}]",
+            *self.cfg.eval.overrides]).eval
         results = _score(checkpoint, self.val_dirs, eval_cfg)
         write_json(folder / "eval.json", results)
-        return {"results": results, "file": self.stored(folder / "eval.json")}
+        return {"results": results, "file": self.stored(folder / "eval.json"),
+                "overrides": list(self.cfg.eval.overrides)}
 
     # -- 3b. the paper's D-ACC protocol
     def paper_eval(self, folder: Path, checkpoint: str) -> dict:
@@ -375,6 +377,9 @@ def summary_markdown(records: dict) -> str:
               ", ".join(f"`{p}`" for p in (*data["train"].values(), *data["val"].values())), "",
               "## Tracker (held-out val scenes, 'first' queries)", "",
               *_tracker_table(records["eval"]["results"])]
+    if records["eval"].get("overrides"):
+        lines += ["", "Scored with `" + " ".join(records["eval"]["overrides"]) + "` (demo config "
+                  "eval.overrides)."]
     paper = records.get("paper-eval")
     if paper:
         size = "x".join(str(v) for v in paper["resolution"])

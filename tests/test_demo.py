@@ -30,6 +30,7 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
         assert r["dynpt_epipolar"]["average_jaccard"] == r["dynpt"]["average_jaccard"]
         assert len(r["dynpt_epipolar_d_acc_interval"]) == 2
     assert summary.count("| DynPT, head + epipolar mobility |") == 4  # 2 presets x 2 tables
+    assert "Scored with `eval.epipolar.residual_sigmas=4` (demo config eval.overrides)." in summary
     assert "## Tracker, the paper's D-ACC protocol" in summary and "with 24 frames at 32x32" in summary
     for name in ("frames", "depth", "masks", "poses_tum.txt", "scene.ply", "report.json"):
         assert (demo_out / "reconstruct" / "scene-000" / "c4d" / name).exists()
