@@ -17,7 +17,9 @@ the best balanced D-ACC any threshold gives (optimistic: picked on the scored po
 - on the true tracks, with i.i.d. Gaussian noise of each --noise sigma (px, per coordinate,
   seeded) added: the tracking accuracy the labels need;
 - with --ckpt: on that tracker's tracks, and the tracker's own mobility probability, with the
-  median track error of moving and static visible point-frames.
+  median track error of moving and static visible point-frames; and the cue pooled over each
+  track's frames as `dynpt/track_mobility.py` pools it (its default settings), alone (head
+  weight 0) and fused with the head, as `c4d eval ... eval.mobility=epipolar` scores it.
 It also gives how far moving point-frames move in the image (px a frame, true tracks).
 """
 
@@ -30,13 +32,18 @@ import numpy as np
 import torch
 
 from c4d_core.config import load_config
-from c4d_core.files import write_text
 from c4d_core.epipolar import fundamental_lmeds, sampson_distance
+from c4d_core.files import write_text
 from dynpt.evaluate import load_source, mobility_counted, track_item
 from dynpt.inference import load_tracker
 from dynpt.metrics import average_precision, roc_auc
+from dynpt.track_mobility import EpipolarMobility, fuse_mobility
 
 THRESHOLD_QUANTILES = np.linspace(0.01, 0.99, 99)
+# the cue pooled over time by dynpt/track_mobility.py (its default settings), alone and fused
+POOLED = {"tracker pooled": EpipolarMobility(head_weight=0.0), "tracker fused": EpipolarMobility()}
+POOLED_LABELS = {"tracker pooled": "epipolar cue pooled over time, tracker's tracks",
+                 "tracker fused": "the same plus the head (eval.mobility=epipolar)"}
 
 
 def epipolar_cue(tracks: np.ndarray, visible: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -96,11 +103,13 @@ def measure(items: list[dict], noises: list[float], tracker, seed: int) -> dict:
             _, _, result = track_item(tracker, item, "sampled")  # every drawn point, (T,N)
             add("tracker cue", epipolar_cue(result.tracks.astype(np.float64), result.visible, seed)[counted])
             add("tracker head", result.moving[counted])
+            for key, settings in POOLED.items():
+                add(key, fuse_mobility(result.tracks, result.visible, result.moving, settings, seed)[counted])
             add("tracker error", np.linalg.norm(result.tracks - truth, axis=-1)[counted])
     flat = {k: np.concatenate(v) for k, v in pooled.items()}
     labels = flat["moving"].astype(bool)
     rows = {}
-    for key in [f"noise {s}" for s in noises] + (["tracker cue", "tracker head"] if tracker else []):
+    for key in [f"noise {s}" for s in noises] + (["tracker cue", "tracker head", *POOLED] if tracker else []):
         scores, ok = flat[key], np.isfinite(flat[key])
         rows[key] = ranking(scores[ok], labels[ok])
     motion = flat["motion"][labels]
@@ -125,7 +134,7 @@ def markdown(name: str, result: dict) -> str:
     lines += ["| scores | ROC AUC | AP moving | best balanced D-ACC |", "|---|---|---|---|"]
     for key, r in result["rows"].items():
         label = {"tracker cue": "epipolar cue, tracker's tracks",
-                 "tracker head": "tracker's mobility head"}.get(key, f"epipolar cue, true tracks + "
+                 "tracker head": "tracker's mobility head", **POOLED_LABELS}.get(key, f"epipolar cue, true tracks + "
                                                                    f"{key.split()[1]} px noise")
         lines.append(f"| {label} | {r['auc']:.3f} | {r['ap']:.3f} | {100 * r['best_balanced']:.1f} |")
     return "\n".join(lines) + "\n"
