@@ -293,8 +293,8 @@ def _score(checkpoint: str, sources: dict[str, Path], eval_cfg) -> dict:
         baseline = evaluate_items(ZeroMotionBaseline(), items, mode)
         results[preset] = {"dynpt": ours["summary"], "dynpt_epipolar": fused["summary"],
                            "zero_motion": baseline["summary"],
-                           "d_acc_interval": d_acc_difference_interval(ours, baseline),
-                           "dynpt_epipolar_d_acc_interval": d_acc_difference_interval(fused, baseline)}
+                           interval_key("dynpt"): d_acc_difference_interval(ours, baseline),
+                           interval_key("dynpt_epipolar"): d_acc_difference_interval(fused, baseline)}
     return results
 
 
@@ -317,6 +317,12 @@ TRACKER_ROWS = {"dynpt": "DynPT (trained here)",
                 "dynpt_epipolar": "DynPT, head + epipolar mobility"}  # records' key -> row name
 
 
+def interval_key(variant: str, metric: str = "d_acc") -> str:
+    """The records' key of the 95 % interval of `variant`'s (a key of TRACKER_ROWS) `metric`
+    difference from the baseline: 'd_acc_interval' for the head's, 'dynpt_epipolar_d_acc_interval'."""
+    return f"{metric}_interval" if variant == "dynpt" else f"{variant}_{metric}_interval"
+
+
 def _tracker_verdict(results: dict, variant: str = "dynpt") -> list[str]:
     """One line per metric saying, in points, whether the tracker (`variant`, a key of
     TRACKER_ROWS) beats the zero-motion baseline. Where the 95 % interval of the difference over
@@ -326,15 +332,14 @@ def _tracker_verdict(results: dict, variant: str = "dynpt") -> list[str]:
     mobility has the same tracks)."""
     from dynpt.evaluate import interval_verdict, signed
 
-    prefix = "" if variant == "dynpt" else f"{variant}_"
     metrics = [("d_acc", "D-ACC"), ("d_acc_balanced", "balanced D-ACC")]
     metrics += [("average_jaccard", "AJ")] if variant == "dynpt" else []
     lines = []
     for key, label in metrics:
         diffs = {p: 100 * (r[variant][key] - r["zero_motion"][key]) for p, r in results.items()}
         text = ", ".join(f"{p} {signed(d)}" for p, d in diffs.items()) + " points"
-        intervals = {p: r[f"{prefix}{key}_interval"] for p, r in results.items()
-                     if f"{prefix}{key}_interval" in r}
+        intervals = {p: r[interval_key(variant, key)] for p, r in results.items()
+                     if interval_key(variant, key) in r}
         if intervals:
             text += "; 95 % interval over the val scenes: " + ", ".join(
                 f"{p} {signed(100 * low)} to {signed(100 * high)}" for p, (low, high) in intervals.items())

@@ -121,6 +121,6 @@ def fused_result(result, settings: EpipolarMobility, seed: int = 0):
 def mobility_tracker(tracker, eval_cfg):
     """`tracker` as `eval_cfg.mobility` says: itself for 'head', else a `FusedMobilityTracker`
     with `eval_cfg.epipolar`'s settings."""
-    if eval_cfg.get("mobility", "head") == "head":
+    if eval_cfg.mobility == "head":
         return tracker
     return FusedMobilityTracker(tracker, EpipolarMobility(**eval_cfg.epipolar))

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from c4d.demo import interval_key
 from dynpt.evaluate import signed
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,8 +64,7 @@ def paper(rec: dict, preset: str, tracker: str = "dynpt") -> tuple[dict, dict, l
     """The paper-protocol summaries of `tracker` ("dynpt": the head's mobility, "dynpt_epipolar":
     fused with the tracks' epipolar geometry) and all-static, and their D-ACC difference's interval."""
     result = rec["paper-eval"][preset]
-    prefix = "" if tracker == "dynpt" else f"{tracker}_"
-    return result[tracker], result["zero_motion"], result[f"{prefix}d_acc_interval"]
+    return result[tracker], result["zero_motion"], result[interval_key(tracker)]
 
 
 def scenes(rec: dict) -> list[dict]:
