@@ -153,7 +153,7 @@ class Demo:
         eval_cfg = load_config("dynpt", self.cfg.train.config, overrides=[
             f"eval.num_tracks={self.cfg.eval.num_tracks}", "eval.num_scenes=0",
             f"eval.resolution=[{self.cfg.data.resolution[0]},{self.cfg.data.resolution[1]}]",
-            *self.cfg.eval.overrides]).eval
+            "eval.mobility=epipolar", *self.cfg.eval.overrides]).eval
         results = _score(checkpoint, self.val_dirs, eval_cfg)
         write_json(folder / "eval.json", results)
         return {"results": results, "file": self.stored(folder / "eval.json"),
@@ -171,11 +171,13 @@ class Demo:
         for preset, target in dirs.items():
             self.render(preset, "val", e.paper_scenes, target, e.paper_resolution, PAPER_FRAMES)
         eval_cfg = load_config("dynpt", self.cfg.train.config, overrides=[
-            "eval.protocol=c4d-paper", "eval.num_scenes=0"]).eval
+            "eval.protocol=c4d-paper", "eval.num_scenes=0", "eval.mobility=epipolar",
+            *e.paper_overrides]).eval
         results = _score(checkpoint, dirs, eval_cfg)
         write_json(folder / "eval.json", results)
         return {"results": results, "file": self.stored(folder / "eval.json"),
-                "scenes_per_preset": e.paper_scenes, "resolution": list(e.paper_resolution)}
+                "scenes_per_preset": e.paper_scenes, "resolution": list(e.paper_resolution),
+                "overrides": list(e.paper_overrides)}
 
     # -- 4a. the reconstructed val scenes, rendered again at the reconstruction's size
     def recon_data(self, folder: Path) -> dict:
@@ -271,30 +273,32 @@ def readme_pictures(pictures: Path) -> Path:
 
 
 def _score(checkpoint: str, sources: dict[str, Path], eval_cfg) -> dict:
-    """preset -> the summaries of the tracker with its head's mobility ("dynpt"), with the head
-    fused with the tracks' epipolar geometry ("dynpt_epipolar", `eval_cfg.epipolar`; the same
-    tracks) and of the all-static baseline on `sources[preset]`, and the 95 % intervals of the
-    D-ACC differences from the baseline, evaluated as `eval_cfg` says."""
+    """preset -> the summaries of the tracker as its network gives it ("dynpt"), post-processed
+    as `eval_cfg` says (dynpt/postprocess.py, on the same tracking pass: "dynpt_epipolar" the
+    head fused with the tracks' epipolar geometry, "dynpt_refined" that on tracks refined by
+    Lucas-Kanade first) and of the all-static baseline on `sources[preset]`, and the 95 %
+    intervals of the D-ACC differences from the baseline, evaluated as `eval_cfg` says."""
     from dynpt.baselines import ZeroMotionBaseline
     from dynpt.evaluate import (d_acc_difference_interval, evaluate_items, load_source,
                                 protocol_query_mode, score_items, track_item)
     from dynpt.inference import load_tracker
-    from dynpt.track_mobility import EpipolarMobility, fused_result
+    from dynpt.postprocess import Postprocess
 
     tracker, mode = load_tracker(checkpoint), protocol_query_mode(eval_cfg)
-    settings = EpipolarMobility(**eval_cfg.epipolar)
+    post = Postprocess.from_config(eval_cfg)
+    post_key = "dynpt_refined" if post.refinement is not None else "dynpt_epipolar"
     results = {}
     for preset, source in sources.items():
         items, _ = load_source(str(source), eval_cfg)
         tracked = [track_item(tracker, item, mode) for item in items]
         ours = score_items(items, tracked, mode)
-        fused = score_items(items, [None if t is None else (*t[:2], fused_result(t[2], settings))
-                                    for t in tracked], mode)
+        processed = score_items(items, [None if t is None else (*t[:2], post(t[2], item["video"]))
+                                        for item, t in zip(items, tracked)], mode)
         baseline = evaluate_items(ZeroMotionBaseline(), items, mode)
-        results[preset] = {"dynpt": ours["summary"], "dynpt_epipolar": fused["summary"],
+        results[preset] = {"dynpt": ours["summary"], post_key: processed["summary"],
                            "zero_motion": baseline["summary"],
                            interval_key("dynpt"): d_acc_difference_interval(ours, baseline),
-                           interval_key("dynpt_epipolar"): d_acc_difference_interval(fused, baseline)}
+                           interval_key(post_key): d_acc_difference_interval(processed, baseline)}
     return results
 
 
@@ -313,8 +317,9 @@ def _pct(value) -> str:
     return "n/a" if value is None else f"{100 * value:.1f}"
 
 
-TRACKER_ROWS = {"dynpt": "DynPT (trained here)",
-                "dynpt_epipolar": "DynPT, head + epipolar mobility"}  # records' key -> row name
+TRACKER_ROWS = {"dynpt": "DynPT (trained here)",  # records' key -> row name
+                "dynpt_epipolar": "DynPT, head + epipolar mobility",
+                "dynpt_refined": "DynPT, LK-refined tracks, head + epipolar mobility"}
 
 
 def interval_key(variant: str, metric: str = "d_acc") -> str:
@@ -328,12 +333,12 @@ def _tracker_verdict(results: dict, variant: str = "dynpt") -> list[str]:
     TRACKER_ROWS) beats the zero-motion baseline. Where the 95 % interval of the difference over
     the val scenes is known (D-ACC), "yes" only when every val set's interval is above 0, "no"
     when all are below, otherwise that the difference is within the scene-to-scene variation;
-    without intervals, by the sign of the differences. AJ only for the head's row (the fused
-    mobility has the same tracks)."""
+    without intervals, by the sign of the differences. AJ only for rows with their own tracks
+    (not "dynpt_epipolar": the network's tracks)."""
     from dynpt.evaluate import interval_verdict, signed
 
     metrics = [("d_acc", "D-ACC"), ("d_acc_balanced", "balanced D-ACC")]
-    metrics += [("average_jaccard", "AJ")] if variant == "dynpt" else []
+    metrics += [("average_jaccard", "AJ")] if variant != "dynpt_epipolar" else []
     lines = []
     for key, label in metrics:
         diffs = {p: 100 * (r[variant][key] - r["zero_motion"][key]) for p, r in results.items()}
@@ -354,8 +359,8 @@ def _tracker_verdict(results: dict, variant: str = "dynpt") -> list[str]:
 
 
 def _tracker_table(results: dict) -> list[str]:
-    """The tracker's rows (its head's mobility, and fused with the tracks' epipolar geometry
-    where the records have it) and the baseline's per val set (percent), then the verdicts."""
+    """The tracker's rows (as its network gives it, and post-processed where the records have
+    it) and the baseline's per val set (percent), then the verdicts."""
     keys = ("d_acc", "d_acc_moving", "d_acc_static", "d_acc_balanced", "moving_ap",
             "average_jaccard", "average_pts_within_thresh", "occlusion_accuracy")
     lines = ["| val set | tracker | D-ACC | D-ACC moving | D-ACC static | D-ACC balanced | AP moving "
@@ -394,6 +399,9 @@ def summary_markdown(records: dict) -> str:
                   "c4d-paper` does: 256 tracks a video drawn as TAP-Vid-Kubric draws them, at "
                   "256x256 (docs/RESULTS.md section 4.1 puts the paper's figures beside these).", "",
                   *_tracker_table(paper["results"])]
+        if paper.get("overrides"):
+            lines += ["", "Scored with `" + " ".join(paper["overrides"]) + "` (demo config "
+                      "eval.paper_overrides)."]
     rec = records["reconstruct"]
     train = records["train"]
     overrides = " ".join(train.get("overrides", [])) or "none"

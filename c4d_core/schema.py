@@ -320,6 +320,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "eval.mobility": text("head", "epipolar"), "eval.epipolar.offset": integer(1),
         "eval.epipolar.window": integer(0), "eval.epipolar.quantile": number(0, 100),
         "eval.epipolar.head_weight": number(0), "eval.epipolar.residual_sigmas": number(above=0),
+        "eval.refine": text("none", "lk"), "eval.lk.window": integer(3),
+        "eval.lk.levels": integer(0), "eval.lk.max_backward_px": number(above=0),
     },
     "c4d": {
         "seed": SEED, "device": device(), "threads": POSITIVE, "flow": text(),
@@ -365,7 +367,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "data.workers": COUNT,
         "train.config": text(), "train.steps": ONE_CYCLE_STEPS, "train.overrides": texts(),
         "eval.num_tracks": COUNT, "eval.overrides": texts(), "eval.paper_scenes": integer(0),
-        "eval.paper_resolution": size(),
+        "eval.paper_resolution": size(), "eval.paper_overrides": texts(),
         "recon.preset": text(), "recon.num_scenes": COUNT, "recon.resolution": size(),
         "recon.config": text(),
         "recon.flow": text(), "recon.overrides": texts(),

@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     from dynpt.evaluate import evaluate_items, load_source, write_report
     from dynpt.checkpoint import load_checkpoint, model_from_checkpoint
     from dynpt.inference import Tracker
-    from dynpt.track_mobility import mobility_tracker
+    from dynpt.postprocess import Postprocess, PostprocessedTracker
 
     if args.device is not None:
         device_rule().check("--device", args.device)
@@ -129,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
     how = "c4d-paper" if cfg.protocol == "c4d-paper" else mode
     out = Path(args.out) if args.out else Path(args.ckpt).parent / f"eval-{stem}-{how}"
     check_folder(out, "eval", args.overwrite)  # before the work
-    tracker = mobility_tracker(Tracker(model_from_checkpoint(ckpt, args.ckpt), args.device), cfg)
+    tracker = PostprocessedTracker(Tracker(model_from_checkpoint(ckpt, args.ckpt), args.device),
+                                   Postprocess.from_config(cfg))
     skipped: list[str] = []  # scenes that could not be read (warned about, counted in the table)
     items, kind = load_source(args.data, cfg, skipped)  # the first eval.num_scenes (0: all)
     read_all = not cfg.num_scenes or len(items) < cfg.num_scenes
@@ -148,11 +149,14 @@ def run(args: argparse.Namespace) -> int:
     if cfg.protocol == "c4d-paper":
         title = (f"{Path(args.data).name} (the c4d-paper protocol: 24 frames at {size}, "
                  f"{cfg.num_tracks} TAP-Vid-Kubric tracks per video, seed {cfg.seed})")
+    if cfg.refine != "none":
+        title += ", tracks refined by Lucas-Kanade (eval.refine=lk)"
     if cfg.mobility != "head":
         title += ", mobility: the head fused with the tracks' epipolar geometry (eval.mobility=epipolar)"
     info = {"checkpoint": str(args.ckpt), "data": str(args.data), "kind": kind, "mode": mode,
             "protocol": cfg.protocol, "seed": cfg.seed, "mobility": cfg.mobility,
             **({"epipolar": OmegaConf.to_container(cfg.epipolar)} if cfg.mobility != "head" else {}),
+            "refine": cfg.refine, **({"lk": OmegaConf.to_container(cfg.lk)} if cfg.refine != "none" else {}),
             "skipped": skipped, "videos_in_data": total, "num_scenes": cfg.num_scenes,
             "resolution": list(cfg.resolution), "num_tracks": cfg.num_tracks if kind == "shards" else None}
     with output_folder(out, "eval", args.overwrite):

@@ -48,6 +48,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the points' moving probability comes from: the network's head, "
                         "or the head fused with the tracks' epipolar geometry pooled over time "
                         "(dynpt/track_mobility.py; the settings of configs/dynpt eval.epipolar) [head]")
+    parser.add_argument("--refine", choices=("none", "lk"), default="none",
+                        help="the tracks as the network gives them, or refined to sub-pixel by "
+                        "Lucas-Kanade against each query frame (dynpt/refine.py; the settings of "
+                        "configs/dynpt eval.lk); with --mobility epipolar the geometry reads the "
+                        "refined tracks [none]")
     parser.add_argument("--no-backward", action="store_true",
                         help="track only forward from each query frame")
     parser.add_argument("--device", help="torch device (default: cuda if available, else cpu)")
@@ -80,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
     from c4d_core.draw import draw_tracks_enlarged
     from c4d_core.video import read_video, resize_long_side, video_fps, write_user_video
     from dynpt.inference import load_tracker
-    from dynpt.track_mobility import EpipolarMobility, FusedMobilityTracker
+    from dynpt.postprocess import Postprocess, PostprocessedTracker
+    from dynpt.refine import TrackRefinement
+    from dynpt.track_mobility import EpipolarMobility
 
     for flag in ("grid_size", "max_points", "points", "size", "max_size"):
         value = getattr(args, flag)
@@ -108,8 +115,9 @@ def run(args: argparse.Namespace) -> int:
         queries[:, 2] = rescale_pixels(queries[:, 2], sy)
     grid = grid_for_budget(H, W, args.grid_size, args.points)
     tracker = load_tracker(args.ckpt, args.device)
-    if args.mobility == "epipolar":
-        tracker = FusedMobilityTracker(tracker, EpipolarMobility())
+    tracker = PostprocessedTracker(tracker, Postprocess(
+        TrackRefinement() if args.refine == "lk" else None,
+        EpipolarMobility() if args.mobility == "epipolar" else None))
     out = Path(args.out)
     check_folder(out, "track", args.overwrite)  # before the work
     log.info("tracking %s points through %d frames of %dx%d (source %dx%d) on %s",

@@ -57,7 +57,7 @@ class TrackResult:
         return replace(self, tracks=rescale_pixels(self.tracks, scale), queries=queries)
 
 
-def _check_video(video) -> np.ndarray | torch.Tensor:
+def check_video(video) -> np.ndarray | torch.Tensor:
     """`video` as uint8 (T,H,W,3); a path (str or PathLike) is read with `dynpt.read_video`."""
     if isinstance(video, (str, os.PathLike)):
         from c4d_core.video import read_video
@@ -175,7 +175,7 @@ class Tracker:
         support_grid: also track a support_grid x support_grid grid of points from frame 0 with
         every chunk of queries, then drop them (CoTracker3's predictor uses 6 with given queries).
         """
-        video = _check_video(video)
+        video = check_video(video)
         if support_grid < 0 or support_grid == 1:
             raise UserError(f"support_grid={support_grid}: give 0 (none) or a grid size of at least 2")
         T, H, W = video.shape[:3]

@@ -97,30 +97,8 @@ def fuse_mobility(tracks: np.ndarray, visible: np.ndarray, moving: np.ndarray,
     return np.where(np.isfinite(moving), 1 / (1 + np.exp(-fused)), np.nan).astype(np.float32)
 
 
-class FusedMobilityTracker:
-    """A tracker whose results carry `fuse_mobility`'s probability in place of the head's; tracks,
-    visibility and confidence are the wrapped tracker's."""
-
-    def __init__(self, tracker, settings: EpipolarMobility, seed: int = 0):
-        self.tracker, self.settings, self.seed = tracker, settings, seed
-
-    def __getattr__(self, name: str):  # the wrapped tracker's device, model, ...
-        return getattr(self.tracker, name)
-
-    def track(self, *args, **kwargs):
-        return fused_result(self.tracker.track(*args, **kwargs), self.settings, self.seed)
-
-
 def fused_result(result, settings: EpipolarMobility, seed: int = 0):
     """`result` (a `dynpt.inference.TrackResult`) with `fuse_mobility`'s probability as its
     `moving`; its tracks, visibility and confidence unchanged."""
     return replace(result, moving=fuse_mobility(result.tracks, result.visible, result.moving,
                                                 settings, seed))
-
-
-def mobility_tracker(tracker, eval_cfg):
-    """`tracker` as `eval_cfg.mobility` says: itself for 'head', else a `FusedMobilityTracker`
-    with `eval_cfg.epipolar`'s settings."""
-    if eval_cfg.mobility == "head":
-        return tracker
-    return FusedMobilityTracker(tracker, EpipolarMobility(**eval_cfg.epipolar))

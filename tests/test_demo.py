@@ -25,12 +25,21 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
     paper = json.loads((demo_out / "paper-eval" / "eval.json").read_text())
     assert set(paper) == {"movi-e", "movi-e-panning"}
     assert all(r["dynpt"]["num_videos"] == 1 and 0 <= r["dynpt"]["moving_ap"] <= 1 for r in paper.values())
-    # the same tracks with the head fused with their epipolar geometry: another mobility, same AJ
-    for r in paper.values():
+    # the same tracking pass post-processed: at the demo's size the head fused with the tracks'
+    # epipolar geometry (the same tracks, the same AJ), in the paper protocol on tracks refined
+    # by Lucas-Kanade first (the demo config's eval.paper_overrides)
+    small = json.loads((demo_out / "eval" / "eval.json").read_text())
+    for r in small.values():
         assert r["dynpt_epipolar"]["average_jaccard"] == r["dynpt"]["average_jaccard"]
         assert len(r["dynpt_epipolar_d_acc_interval"]) == 2
-    assert summary.count("| DynPT, head + epipolar mobility |") == 4  # 2 presets x 2 tables
+    for r in paper.values():
+        assert "dynpt_epipolar" not in r and len(r["dynpt_refined_d_acc_interval"]) == 2
+        assert r["dynpt_refined"]["occlusion_accuracy"] == r["dynpt"]["occlusion_accuracy"]
+    assert summary.count("| DynPT, head + epipolar mobility |") == 2  # 2 presets, demo's size
+    assert summary.count("| DynPT, LK-refined tracks, head + epipolar mobility |") == 2  # paper protocol
     assert "Scored with `eval.epipolar.residual_sigmas=4` (demo config eval.overrides)." in summary
+    assert ("Scored with `eval.refine=lk eval.epipolar.residual_sigmas=0.7` (demo config "
+            "eval.paper_overrides).") in summary
     assert "## Tracker, the paper's D-ACC protocol" in summary and "with 24 frames at 32x32" in summary
     for name in ("frames", "depth", "masks", "poses_tum.txt", "scene.ply", "report.json"):
         assert (demo_out / "reconstruct" / "scene-000" / "c4d" / name).exists()

@@ -61,8 +61,9 @@ def one(text: str, pattern: str) -> tuple[str, ...]:
 
 
 def paper(rec: dict, preset: str, tracker: str = "dynpt") -> tuple[dict, dict, list[float]]:
-    """The paper-protocol summaries of `tracker` ("dynpt": the head's mobility, "dynpt_epipolar":
-    fused with the tracks' epipolar geometry) and all-static, and their D-ACC difference's interval."""
+    """The paper-protocol summaries of `tracker` ("dynpt": the network's, "dynpt_refined": its
+    tracks refined by Lucas-Kanade and its head fused with their epipolar geometry) and
+    all-static, and their D-ACC difference's interval."""
     result = rec["paper-eval"][preset]
     return result[tracker], result["zero_motion"], result[interval_key(tracker)]
 
@@ -108,11 +109,14 @@ def test_readme_quotes_the_run():
         assert one(text, pattern) == tuple(signed(v) for v in expected)
     assert one(text, r"balanced D-ACC (\d+) / (\d+), the target is 75") == \
         tuple(f"{100 * paper(rec, p)[0]['d_acc_balanced']:.0f}" for p in PRESETS)
+    assert one(text, r"AJ (\d+) / (\d+) against the network's (\d+) / (\d+) at 256x256") == tuple(
+        f"{100 * paper(rec, p, k)[0]['average_jaccard']:.0f}" for k in ("dynpt_refined", "dynpt")
+        for p in PRESETS)
     for preset, pattern in (("movi-e", r"reaches the target on movi-e: balanced D-ACC ([0-9.]+) with "
                                        r"D-ACC ([+-][0-9.]+) \(([+-][0-9.]+) to ([+-][0-9.]+)\)"),
                             ("movi-e-panning", r"on panning it reaches ([0-9.]+) and ([+-][0-9.]+) "
                                                r"\(([+-][0-9.]+) to ([+-][0-9.]+)\), short of it")):
-        fused, zero, interval = paper(rec, preset, "dynpt_epipolar")
+        fused, zero, interval = paper(rec, preset, "dynpt_refined")
         expected = [100 * (fused["d_acc"] - zero["d_acc"]), *(100 * v for v in interval)]
         assert one(text, pattern) == (f"{100 * fused['d_acc_balanced']:.1f}",
                                       *(signed(v) for v in expected))
@@ -149,7 +153,8 @@ def test_results_section_1_tables_are_the_run():
     rec, text = records(), section("docs/RESULTS.md", "## 1.")
     names = {"DynPT (trained in the demo)": "dynpt", "zero motion, all static": "zero_motion",
              "all static, zero motion": "zero_motion",
-             "the same, head + epipolar mobility": "dynpt_epipolar"}
+             "the same, head + epipolar mobility": "dynpt_epipolar",
+             "the same, LK-refined tracks, head + epipolar mobility": "dynpt_refined"}
     keys = ["d_acc", "d_acc_moving", "d_acc_static", "d_acc_balanced", "average_jaccard",
             "average_pts_within_thresh", "occlusion_accuracy"]
     rows = table(text, "| val set | tracker | D-ACC | moving |")

@@ -121,6 +121,15 @@ def test_eval_cli_writes_json_and_markdown(tmp_path, davis_pickle, capsys):
     assert fused_report["info"]["epipolar"]["head_weight"] == 0
     assert fused_report["summary"]["average_jaccard"] == s["average_jaccard"]
     assert "eval.mobility=epipolar" in (fused / "eval.md").read_text()
+    # the tracks refined by Lucas-Kanade (dynpt/refine.py) before the fusion reads them
+    refined = tmp_path / "eval-refined"
+    assert main(["eval", "--ckpt", str(ckpt), "--data", str(shards), "--out", str(refined),
+                 "--config", "tiny-cpu", "eval.resolution=[32,32]", "eval.num_tracks=8",
+                 "eval.num_scenes=2", "eval.refine=lk", "eval.mobility=epipolar"]) == 0
+    refined_report = json.loads((refined / "eval.json").read_text())
+    assert refined_report["info"]["refine"] == "lk" and refined_report["info"]["lk"]["window"] == 11
+    assert refined_report["summary"]["occlusion_accuracy"] == s["occlusion_accuracy"]  # same visibility
+    assert "eval.refine=lk" in (refined / "eval.md").read_text()
     out2 = tmp_path / "eval-davis"
     assert main(["eval", "--ckpt", str(ckpt), "--data", str(davis_pickle), "--mode", "strided",
                  "--out", str(out2), "--config", "tiny-cpu", "eval.resolution=[64,64]"]) == 0

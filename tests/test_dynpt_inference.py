@@ -12,6 +12,7 @@ from c4d_core.errors import UserError
 from dynpt.checkpoint import save_checkpoint
 from dynpt.inference import Tracker, load_tracker
 from dynpt.query_sampling import sample_queries
+from dynpt.refine import TrackRefinement, refine_tracks
 from c4d_core.video import read_video, write_video
 from test_dynpt_model import make_model
 
@@ -152,6 +153,15 @@ def test_c4d_track_end_to_end(tmp_path, capsys):
     other = np.load(fused / "tracks.npz")
     np.testing.assert_array_equal(other["tracks"], data["tracks"])
     assert ((other["moving"] >= 0) & (other["moving"] <= 1)).all()  # fusion: tests/test_track_mobility.py
+    refined = tmp_path / "refined"  # the tracks refined by Lucas-Kanade, the same visibility
+    assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(refined), "--grid-size", "20",
+                 "--refine", "lk"]) == 0
+    other = np.load(refined / "tracks.npz")
+    expected = refine_tracks(read_video(video_path), data["tracks"], data["visible"], data["queries"],
+                             TrackRefinement())  # how it refines: tests/test_refine.py
+    np.testing.assert_array_equal(other["tracks"], expected)
+    np.testing.assert_array_equal(other["visible"], data["visible"])
+    np.testing.assert_array_equal(other["moving"], data["moving"])
     queries = tmp_path / "q.txt"
     np.savetxt(queries, [[2, 10, 10], [0, 30, 20]])
     assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(out), "--queries", str(queries)]) == 0

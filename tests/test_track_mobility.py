@@ -10,7 +10,7 @@ from benchmarks.mobility_cue import epipolar_cue, ranking
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
 from dynpt.inference import TrackResult
-from dynpt.track_mobility import EpipolarMobility, FusedMobilityTracker, fuse_mobility, pair_distances
+from dynpt.track_mobility import EpipolarMobility, fuse_mobility, pair_distances
 from tests.synthetic_scenes import make_box_scene
 
 UNDECIDED = 0.5  # a head that says nothing
@@ -63,27 +63,7 @@ def test_frames_not_predicted_stay_nan_and_too_few_tracks_keep_the_head():
     np.testing.assert_allclose(few[3:], 0.8, atol=1e-6)  # no geometry, no weight: the head's own
 
 
-class FixedTracker:
-    device = "cpu"
-
-    def __init__(self, result: TrackResult):
-        self.result = result
-
-    def track(self, video, queries=None, **kwargs) -> TrackResult:
-        return self.result
-
-
-def test_the_wrapper_changes_only_mobility_and_the_config_is_checked():
-    tracks, visible, _ = box_tracks(noise_px=0.5)
-    result = TrackResult(tracks=tracks.astype(np.float32), visible=visible,
-                         confidence=np.ones(visible.shape, np.float32),
-                         moving=np.full(visible.shape, UNDECIDED, np.float32),
-                         queries=np.zeros((visible.shape[1], 3), np.float32))
-    wrapped = FusedMobilityTracker(FixedTracker(result), EpipolarMobility())
-    out = wrapped.track(None)
-    assert wrapped.device == "cpu"
-    assert out.tracks is result.tracks and out.visible is result.visible
-    assert not np.allclose(out.moving, result.moving)
+def test_the_settings_are_checked():
     with pytest.raises(UserError, match="eval.epipolar.offset"):
         load_config("dynpt", "tiny-cpu", overrides=["eval.epipolar.offset=0"])
     with pytest.raises(UserError, match="eval.mobility"):
