@@ -19,7 +19,9 @@ the best balanced D-ACC any threshold gives (optimistic: picked on the scored po
 - with --ckpt: on that tracker's tracks, and the tracker's own mobility probability, with the
   median track error of moving and static visible point-frames; and the cue pooled over each
   track's frames as `dynpt/track_mobility.py` pools it (its default settings), alone (head
-  weight 0) and fused with the head, as `c4d eval ... eval.mobility=epipolar` scores it.
+  weight 0) and fused with the head, as `c4d eval ... eval.mobility=epipolar` scores it; the same
+  fused score on the tracks refined by Lucas-Kanade (`dynpt/refine.py`, its default settings, as
+  `eval.refine=lk` scores it), with the refined tracks' median errors.
 It also gives how far moving point-frames move in the image (px a frame, true tracks).
 """
 
@@ -37,13 +39,15 @@ from c4d_core.files import write_text
 from dynpt.evaluate import load_source, mobility_counted, track_item
 from dynpt.inference import load_tracker
 from dynpt.metrics import average_precision, roc_auc
+from dynpt.refine import TrackRefinement, refined_result
 from dynpt.track_mobility import EpipolarMobility, fuse_mobility
 
 THRESHOLD_QUANTILES = np.linspace(0.01, 0.99, 99)
 # the cue pooled over time by dynpt/track_mobility.py (its default settings), alone and fused
 POOLED = {"tracker pooled": EpipolarMobility(head_weight=0.0), "tracker fused": EpipolarMobility()}
 POOLED_LABELS = {"tracker pooled": "epipolar cue pooled over time, tracker's tracks",
-                 "tracker fused": "the same plus the head (eval.mobility=epipolar)"}
+                 "tracker fused": "the same plus the head (eval.mobility=epipolar)",
+                 "refined fused": "the same on tracks refined by Lucas-Kanade (eval.refine=lk)"}
 
 
 def epipolar_cue(tracks: np.ndarray, visible: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -106,19 +110,24 @@ def measure(items: list[dict], noises: list[float], tracker, seed: int) -> dict:
             for key, settings in POOLED.items():
                 add(key, fuse_mobility(result.tracks, result.visible, result.moving, settings, seed)[counted])
             add("tracker error", np.linalg.norm(result.tracks - truth, axis=-1)[counted])
+            refined = refined_result(result, item["video"], TrackRefinement())
+            add("refined fused", fuse_mobility(refined.tracks, refined.visible, refined.moving,
+                                               POOLED["tracker fused"], seed)[counted])
+            add("refined error", np.linalg.norm(refined.tracks - truth, axis=-1)[counted])
     flat = {k: np.concatenate(v) for k, v in pooled.items()}
     labels = flat["moving"].astype(bool)
     rows = {}
-    for key in [f"noise {s}" for s in noises] + (["tracker cue", "tracker head", *POOLED] if tracker else []):
+    for key in [f"noise {s}" for s in noises] + (["tracker cue", "tracker head", *POOLED, "refined fused"]
+                                                  if tracker else []):
         scores, ok = flat[key], np.isfinite(flat[key])
         rows[key] = ranking(scores[ok], labels[ok])
     motion = flat["motion"][labels]
     extra = {"moving_share": float(labels.mean()),
              "moving_motion_below": {px: float((motion < px).mean()) for px in (0.5, 1.0, 2.0)}}
     if tracker is not None:
-        error = flat["tracker error"]
-        extra["median_error"] = {"moving": float(np.median(error[labels])),
-                                 "static": float(np.median(error[~labels]))}
+        extra["median_error"], extra["refined_median_error"] = (
+            {"moving": float(np.median(flat[key][labels])), "static": float(np.median(flat[key][~labels]))}
+            for key in ("tracker error", "refined error"))
     return {"rows": rows, **extra}
 
 
@@ -129,8 +138,10 @@ def markdown(name: str, result: dict) -> str:
                                    result["moving_motion_below"].items()) + " in the image.", ""]
     if "median_error" in result:
         e = result["median_error"]
+        r = result["refined_median_error"]
         lines += [f"The tracker's median error: {e['moving']:.1f} px on moving, {e['static']:.1f} px "
-                  "on static visible point-frames.", ""]
+                  f"on static visible point-frames; refined by Lucas-Kanade {r['moving']:.1f} px and "
+                  f"{r['static']:.2f} px.", ""]
     lines += ["| scores | ROC AUC | AP moving | best balanced D-ACC |", "|---|---|---|---|"]
     for key, r in result["rows"].items():
         label = {"tracker cue": "epipolar cue, tracker's tracks",
