@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(dynpt/track_mobility.py; the settings of configs/dynpt eval.epipolar) [head]")
     parser.add_argument("--refine", choices=("none", "lk"), default="none",
                         help="the tracks as the network gives them, or refined to sub-pixel by "
-                        "Lucas-Kanade against each query frame (dynpt/refine.py; the settings of "
+                        "Lucas-Kanade frame to frame from each query point (dynpt/refine.py; the settings of "
                         "configs/dynpt eval.lk); with --mobility epipolar the geometry reads the "
                         "refined tracks [none]")
     parser.add_argument("--no-backward", action="store_true",

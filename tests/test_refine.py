@@ -1,6 +1,7 @@
-"""dynpt/refine.py and dynpt/postprocess.py: Lucas-Kanade puts a tracker's noisy tracks of a
-textured, sub-pixel translating video back on the true points, keeps what it cannot check, and
-the post-processing reads the fused mobility from the refined tracks."""
+"""dynpt/refine.py and dynpt/postprocess.py: Lucas-Kanade, frame to frame, puts a tracker's noisy
+tracks of a textured, sub-pixel translating video back on the true points (across an occlusion
+too), keeps what it cannot check, and the post-processing reads the fused mobility from the
+refined tracks."""
 
 from __future__ import annotations
 
@@ -63,6 +64,10 @@ def test_refinement_lands_on_the_true_points_and_keeps_what_it_cannot_check():
     assert np.median(before) > 1.0 and np.median(after) < 0.1, (np.median(before), np.median(after))
     assert np.percentile(after, 95) < 0.3
     assert np.array_equal(refined[5, :10], noisy[5, :10])  # occluded frames
+    # after the occlusion a track is matched from its last trusted frame, not from the tracker's
+    # noisy guess in the occluded one: it is back on its point
+    after_gap = np.linalg.norm(refined[6, :10] - truth[6, :10], axis=-1)[textured[:10]]
+    assert len(after_gap) >= 3 and after_gap.max() < 0.2, after_gap
     query_frame = queries[:, 0].astype(int)
     assert np.array_equal(refined[query_frame, np.arange(len(queries))],
                           noisy[query_frame, np.arange(len(queries))])
