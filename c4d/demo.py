@@ -153,7 +153,7 @@ class Demo:
         eval_cfg = load_config("dynpt", self.cfg.train.config, overrides=[
             f"eval.num_tracks={self.cfg.eval.num_tracks}", "eval.num_scenes=0",
             f"eval.resolution=[{self.cfg.data.resolution[0]},{self.cfg.data.resolution[1]}]",
-            "eval.mobility=epipolar", *self.cfg.eval.overrides]).eval
+            *self.cfg.eval.overrides, "eval.mobility=epipolar"]).eval  # last: the post-processed row always fuses
         results = _score(checkpoint, self.val_dirs, eval_cfg)
         write_json(folder / "eval.json", results)
         return {"results": results, "file": self.stored(folder / "eval.json"),
@@ -171,8 +171,8 @@ class Demo:
         for preset, target in dirs.items():
             self.render(preset, "val", e.paper_scenes, target, e.paper_resolution, PAPER_FRAMES)
         eval_cfg = load_config("dynpt", self.cfg.train.config, overrides=[
-            "eval.protocol=c4d-paper", "eval.num_scenes=0", "eval.mobility=epipolar",
-            *e.paper_overrides]).eval
+            "eval.protocol=c4d-paper", "eval.num_scenes=0", *e.paper_overrides,
+            "eval.mobility=epipolar"]).eval  # last: the post-processed row always fuses
         results = _score(checkpoint, dirs, eval_cfg)
         write_json(folder / "eval.json", results)
         return {"results": results, "file": self.stored(folder / "eval.json"),
