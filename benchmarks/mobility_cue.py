@@ -19,9 +19,10 @@ the best balanced D-ACC any threshold gives (optimistic: picked on the scored po
 - with --ckpt: on that tracker's tracks, and the tracker's own mobility probability, with the
   median track error of moving and static visible point-frames; and the cue pooled over each
   track's frames as `dynpt/track_mobility.py` pools it (its default settings), alone (head
-  weight 0) and fused with the head, as `c4d eval ... eval.mobility=epipolar` scores it; the same
-  fused score on the tracks refined by Lucas-Kanade (`dynpt/refine.py`, its default settings, as
-  `eval.refine=lk` scores it), with the refined tracks' median errors.
+  weight 0) and fused with the head, as `c4d eval ... eval.mobility=epipolar` scores it; and the
+  tracks refined by Lucas-Kanade (`dynpt/refine.py`), fused on the positions it confirmed, as the
+  demo's paper-eval step scores them (configs/demo/default.yaml `eval.paper_overrides`), with the
+  refined tracks' median errors.
 It also gives how far moving point-frames move in the image (px a frame, true tracks).
 """
 
@@ -39,7 +40,7 @@ from c4d_core.files import write_text
 from dynpt.evaluate import load_source, mobility_counted, track_item
 from dynpt.inference import load_tracker
 from dynpt.metrics import average_precision, roc_auc
-from dynpt.refine import TrackRefinement, refined_result
+from dynpt.postprocess import Postprocess
 from dynpt.track_mobility import EpipolarMobility, fuse_mobility
 
 THRESHOLD_QUANTILES = np.linspace(0.01, 0.99, 99)
@@ -47,7 +48,7 @@ THRESHOLD_QUANTILES = np.linspace(0.01, 0.99, 99)
 POOLED = {"tracker pooled": EpipolarMobility(head_weight=0.0), "tracker fused": EpipolarMobility()}
 POOLED_LABELS = {"tracker pooled": "epipolar cue pooled over time, tracker's tracks",
                  "tracker fused": "the same plus the head (eval.mobility=epipolar)",
-                 "refined fused": "the same on tracks refined by Lucas-Kanade (eval.refine=lk)"}
+                 "refined fused": "refined by Lucas-Kanade, fused as the demo's paper-eval step"}
 
 
 def epipolar_cue(tracks: np.ndarray, visible: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -86,7 +87,7 @@ def image_motion(tracks: np.ndarray) -> np.ndarray:
     return np.linalg.norm(tracks[after] - tracks[before], axis=-1) / np.maximum(after - before, 1)[:, None]
 
 
-def measure(items: list[dict], noises: list[float], tracker, seed: int) -> dict:
+def measure(items: list[dict], noises: list[float], tracker, refine: Postprocess, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     pooled: dict[str, list[np.ndarray]] = {}
 
@@ -110,9 +111,8 @@ def measure(items: list[dict], noises: list[float], tracker, seed: int) -> dict:
             for key, settings in POOLED.items():
                 add(key, fuse_mobility(result.tracks, result.visible, result.moving, settings, seed)[counted])
             add("tracker error", np.linalg.norm(result.tracks - truth, axis=-1)[counted])
-            refined = refined_result(result, item["video"], TrackRefinement())
-            add("refined fused", fuse_mobility(refined.tracks, refined.visible, refined.moving,
-                                               POOLED["tracker fused"], seed)[counted])
+            refined = refine(result, item["video"])  # (T,N)
+            add("refined fused", refined.moving[counted])
             add("refined error", np.linalg.norm(refined.tracks - truth, axis=-1)[counted])
     flat = {k: np.concatenate(v) for k, v in pooled.items()}
     labels = flat["moving"].astype(bool)
@@ -163,11 +163,15 @@ def main() -> None:
     eval_cfg = load_config("dynpt", "tiny-cpu", overrides=["eval.protocol=c4d-paper",
                                                            "eval.num_scenes=0"]).eval
     tracker = load_tracker(args.ckpt, "cpu") if args.ckpt else None
+    # refined, then fused on the positions Lucas-Kanade confirmed, as the demo's paper-eval step
+    # scores it (configs/demo/default.yaml eval.paper_overrides)
+    refine = Postprocess.from_config(load_config("dynpt", "tiny-cpu", overrides=[
+        *load_config("demo", "default").eval.paper_overrides, "eval.mobility=epipolar"]).eval)
     noises = [float(s) for s in args.noise.split(",")]
     text = ""
     for source in args.data:
         items, _ = load_source(source, eval_cfg)
-        text += markdown(f"{source} ({len(items)} videos)", measure(items, noises, tracker, args.seed)) + "\n"
+        text += markdown(f"{source} ({len(items)} videos)", measure(items, noises, tracker, refine, args.seed)) + "\n"
         print(text, flush=True)
     if args.out:
         write_text(args.out, text)

@@ -2,15 +2,19 @@
 photometrically (`dynpt.refine`, the dynpt configs' `eval.refine`) and fuse its head's mobility
 with the tracks' epipolar geometry (`dynpt.track_mobility`, `eval.mobility`), in that order: the
 geometry is read from the refined tracks. Neither needs weights or changes the network's output
-otherwise; `c4d eval`, `c4d track` and `c4d demo` apply them as their settings say."""
+otherwise; `c4d eval`, `c4d track` and `c4d demo` apply them as their settings say.
+
+The geometry reads only positions it can trust: without refinement every visible one; with it,
+those Lucas-Kanade confirmed (the others are the tracker's, a few px off: a static point whose
+track went astray would read as a moving one)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from dynpt.inference import check_video
-from dynpt.refine import TrackRefinement, refined_result
-from dynpt.track_mobility import EpipolarMobility, fused_result
+from dynpt.refine import TrackRefinement, refine_tracks
+from dynpt.track_mobility import EpipolarMobility, fuse_mobility
 
 
 @dataclass(frozen=True)
@@ -29,11 +33,17 @@ class Postprocess:
                    EpipolarMobility(**eval_cfg.epipolar) if eval_cfg.mobility == "epipolar" else None)
 
     def __call__(self, result, video):
-        """`result` (a `dynpt.inference.TrackResult` of `video` uint8 (T,H,W,3)) post-processed."""
+        """`result` (a `dynpt.inference.TrackResult` of `video` uint8 (T,H,W,3)) post-processed:
+        its tracks refined and its `moving` fused as the settings say; visibility and confidence
+        unchanged."""
+        trusted = result.visible  # (T,N) bool: the positions the fused mobility's geometry reads
         if self.refinement is not None:
-            result = refined_result(result, video, self.refinement)
+            tracks, trusted = refine_tracks(video, result.tracks, result.visible, result.queries,
+                                            self.refinement)
+            result = replace(result, tracks=tracks)
         if self.mobility is not None:
-            result = fused_result(result, self.mobility)
+            result = replace(result, moving=fuse_mobility(result.tracks, trusted, result.moving,
+                                                          self.mobility))
         return result
 
 

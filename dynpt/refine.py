@@ -17,11 +17,15 @@ from the last frame s where it was trusted (at first the query frame) to the nex
 Frame to frame the patch barely changes, so points on tumbling objects are followed where a
 comparison with the query frame alone would fail. The query frame keeps the query point;
 visibility, confidence and mobility are not touched. Deterministic (no sampling).
+
+Besides the positions it says which of them Lucas-Kanade confirmed (both checks passed, and each
+query frame): the others are the tracker's, a few px off, and a sub-pixel cue such as the fused
+mobility (`dynpt.postprocess`) reads only the confirmed ones.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -41,17 +45,21 @@ class TrackRefinement:
 
 
 def refine_tracks(video: np.ndarray, tracks: np.ndarray, visible: np.ndarray,
-                  queries: np.ndarray, settings: TrackRefinement) -> np.ndarray:
-    """float32 (T,N,2) px: `tracks` (T,N,2) (x, y) px of `video` uint8 (T,H,W,3), refined where
-    `visible` (T,N) bool says visible (see the module); queries float (N,3) as (t, x, y)."""
+                  queries: np.ndarray, settings: TrackRefinement) -> tuple[np.ndarray, np.ndarray]:
+    """(refined float32 (T,N,2) px, confirmed bool (T,N)): `tracks` (T,N,2) (x, y) px of `video`
+    uint8 (T,H,W,3), refined where `visible` (T,N) bool says visible, and the frames whose
+    position Lucas-Kanade confirmed or that are the track's query frame (see the module); queries
+    float (N,3) as (t, x, y)."""
     video = video.cpu().numpy() if hasattr(video, "cpu") else np.asarray(video)  # torch or numpy
     grey = [cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY) for frame in video]  # T x (H,W)
     tracks = np.asarray(tracks, np.float32)
     refined = tracks.copy()  # (T,N,2)
+    query_frame = np.rint(queries[:, 0]).astype(int)  # (N,)
+    confirmed = np.zeros(tracks.shape[:2], bool)  # (T,N)
+    confirmed[query_frame, np.arange(len(query_frame))] = True
     lk = dict(winSize=(settings.window, settings.window), maxLevel=settings.levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
               flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    query_frame = np.rint(queries[:, 0]).astype(int)  # (N,)
     for q in np.unique(query_frame):
         tracked = np.flatnonzero(query_frame == q)  # (M,) the tracks queried at frame q
         for step in (1, -1):  # forward, then backward in time
@@ -70,12 +78,7 @@ def refine_tracks(video: np.ndarray, tracks: np.ndarray, visible: np.ndarray,
                     good = ((ok[:, 0] == 1) & (ok_back[:, 0] == 1) & returned & visible[t, index]
                             & np.isfinite(forward[:, 0]).all(1))  # (K,)
                     refined[t, index[good]] = forward[good, 0]
+                    confirmed[t, index[good]] = True
                     anchor[group[good]], position[group[good]] = t, forward[good, 0]
-    return refined
+    return refined, confirmed
 
-
-def refined_result(result, video: np.ndarray, settings: TrackRefinement):
-    """`result` (a `dynpt.inference.TrackResult` of `video` uint8 (T,H,W,3)) with
-    `refine_tracks`'s positions; visibility, confidence and mobility unchanged."""
-    return replace(result, tracks=refine_tracks(video, result.tracks, result.visible,
-                                                result.queries, settings))

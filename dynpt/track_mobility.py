@@ -27,7 +27,7 @@ points move, a higher `residual_sigmas` keeps static points static (the demo sco
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -82,7 +82,8 @@ def _window_nan_stat(values: np.ndarray, window: int, reach: int, stat) -> np.nd
 def fuse_mobility(tracks: np.ndarray, visible: np.ndarray, moving: np.ndarray,
                   settings: EpipolarMobility, seed: int = 0) -> np.ndarray:
     """float32 (T,N) probability that each point moves, from tracks (T,N,2) px, visible bool
-    (T,N) and the head's probability moving (T,N) (NaN where not predicted); see the module."""
+    (T,N) (the positions it reads: the visible ones, or after `dynpt.refine` the confirmed ones)
+    and the head's probability moving (T,N) (NaN where not predicted); see the module."""
     tracks = tracks.astype(np.float64)
     p = np.clip(moving, 1e-4, 1 - 1e-4)
     head = np.log(p / (1 - p))  # (T,N) logits
@@ -96,9 +97,3 @@ def fuse_mobility(tracks: np.ndarray, visible: np.ndarray, moving: np.ndarray,
     fused = np.where(np.isfinite(g), np.nan_to_num(settings.head_weight * h) + geometry, head)
     return np.where(np.isfinite(moving), 1 / (1 + np.exp(-fused)), np.nan).astype(np.float32)
 
-
-def fused_result(result, settings: EpipolarMobility, seed: int = 0):
-    """`result` (a `dynpt.inference.TrackResult`) with `fuse_mobility`'s probability as its
-    `moving`; its tracks, visibility and confidence unchanged."""
-    return replace(result, moving=fuse_mobility(result.tracks, result.visible, result.moving,
-                                                settings, seed))

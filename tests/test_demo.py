@@ -38,7 +38,8 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
     assert summary.count("| DynPT, head + epipolar mobility |") == 2  # 2 presets, demo's size
     assert summary.count("| DynPT, LK-refined tracks, head + epipolar mobility |") == 2  # paper protocol
     assert "Scored with `eval.epipolar.residual_sigmas=4` (demo config eval.overrides)." in summary
-    assert ("Scored with `eval.refine=lk eval.epipolar.residual_sigmas=0.55` (demo config "
+    assert ("Scored with `eval.refine=lk eval.epipolar.offset=1 eval.epipolar.residual_sigmas=0.55` "
+            "(demo config "
             "eval.paper_overrides).") in summary
     assert "## Tracker, the paper's D-ACC protocol" in summary and "with 24 frames at 32x32" in summary
     for name in ("frames", "depth", "masks", "poses_tum.txt", "scene.ply", "report.json"):

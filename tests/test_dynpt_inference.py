@@ -157,8 +157,8 @@ def test_c4d_track_end_to_end(tmp_path, capsys):
     assert main(["track", str(video_path), "--ckpt", str(ckpt), "--out", str(refined), "--grid-size", "20",
                  "--refine", "lk"]) == 0
     other = np.load(refined / "tracks.npz")
-    expected = refine_tracks(read_video(video_path), data["tracks"], data["visible"], data["queries"],
-                             TrackRefinement())  # how it refines: tests/test_refine.py
+    expected, _ = refine_tracks(read_video(video_path), data["tracks"], data["visible"],
+                                data["queries"], TrackRefinement())  # how: tests/test_refine.py
     np.testing.assert_array_equal(other["tracks"], expected)
     np.testing.assert_array_equal(other["visible"], data["visible"])
     np.testing.assert_array_equal(other["moving"], data["moving"])

@@ -56,7 +56,7 @@ def test_refinement_lands_on_the_true_points_and_keeps_what_it_cannot_check():
     truth, noisy, queries = truth_and_noisy(offsets)
     visible = np.ones(noisy.shape[:2], bool)
     visible[5, :10] = False  # said occluded: left alone
-    refined = refine_tracks(video, noisy, visible, queries, TrackRefinement())
+    refined, confirmed = refine_tracks(video, noisy, visible, queries, TrackRefinement())
     textured = truth[0, :, 0] < FLAT_X - 12  # (N,) points whose window lies on the texture
     flat = truth[0, :, 0] > FLAT_X + 12
     before = np.linalg.norm(noisy - truth, axis=-1)[:, textured]
@@ -72,8 +72,15 @@ def test_refinement_lands_on_the_true_points_and_keeps_what_it_cannot_check():
     assert np.array_equal(refined[query_frame, np.arange(len(queries))],
                           noisy[query_frame, np.arange(len(queries))])
     assert flat.any() and np.array_equal(refined[:, flat], noisy[:, flat])  # the check fails there
+    # confirmed: the query frames and every position Lucas-Kanade set, nothing else
+    assert confirmed[query_frame, np.arange(len(queries))].all()
+    not_query = np.arange(len(confirmed))[:, None] != query_frame[None]  # (T,N)
+    assert not confirmed[5, :10].any() and not (confirmed & not_query)[:, flat].any()
+    assert confirmed[:, textured].mean() > 0.95
+    assert not ((refined != noisy).any(-1) & ~confirmed).any()  # what moved was confirmed
     again = refine_tracks(torch.from_numpy(video), noisy, visible, queries, TrackRefinement())
-    assert np.array_equal(again, refined)  # deterministic, torch frames alike
+    assert np.array_equal(again[0], refined) and np.array_equal(again[1], confirmed)  # deterministic,
+    # torch frames alike
 
 
 class FixedTracker:
@@ -99,10 +106,15 @@ def test_the_post_processing_refines_then_fuses_and_the_config_is_checked():
     wrapped = PostprocessedTracker(FixedTracker(result), post)
     out = wrapped.track(video)
     assert wrapped.device == "cpu"
-    refined = refine_tracks(video, noisy, visible, queries, TrackRefinement())
+    refined, confirmed = refine_tracks(video, noisy, visible, queries, TrackRefinement())
     assert np.array_equal(out.tracks, refined) and out.visible is visible
-    assert np.array_equal(out.moving, fuse_mobility(refined, visible, head, EpipolarMobility()),
+    # the geometry reads only the positions Lucas-Kanade confirmed
+    assert not confirmed.all()
+    assert np.array_equal(out.moving, fuse_mobility(refined, confirmed, head, EpipolarMobility()),
                           equal_nan=True)
+    fused_only = PostprocessedTracker(FixedTracker(result), Postprocess(None, EpipolarMobility()))
+    assert np.array_equal(fused_only.track(video).moving,  # unrefined: every visible position
+                          fuse_mobility(noisy, visible, head, EpipolarMobility()), equal_nan=True)
     plain = PostprocessedTracker(FixedTracker(result), Postprocess.from_config(
         load_config("dynpt", "tiny-cpu").eval)).track(video)
     assert plain is result  # the defaults change nothing
