@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from c4d.demo import paper_eval_config
 from c4d_core.config import load_config
 from c4d_core.epipolar import fundamental_lmeds, sampson_distance
 from c4d_core.files import write_text
@@ -87,7 +88,8 @@ def image_motion(tracks: np.ndarray) -> np.ndarray:
     return np.linalg.norm(tracks[after] - tracks[before], axis=-1) / np.maximum(after - before, 1)[:, None]
 
 
-def measure(items: list[dict], noises: list[float], tracker, refine: Postprocess, seed: int) -> dict:
+def measure(items: list[dict], noises: list[float], tracker, paper_post: Postprocess,
+            seed: int) -> dict:
     rng = np.random.default_rng(seed)
     pooled: dict[str, list[np.ndarray]] = {}
 
@@ -111,7 +113,7 @@ def measure(items: list[dict], noises: list[float], tracker, refine: Postprocess
             for key, settings in POOLED.items():
                 add(key, fuse_mobility(result.tracks, result.visible, result.moving, settings, seed)[counted])
             add("tracker error", np.linalg.norm(result.tracks - truth, axis=-1)[counted])
-            refined = refine(result, item["video"])  # (T,N)
+            refined = paper_post(result, item["video"])  # refined tracks, fused mobility
             add("refined fused", refined.moving[counted])
             add("refined error", np.linalg.norm(refined.tracks - truth, axis=-1)[counted])
     flat = {k: np.concatenate(v) for k, v in pooled.items()}
@@ -165,13 +167,12 @@ def main() -> None:
     tracker = load_tracker(args.ckpt, "cpu") if args.ckpt else None
     # refined, then fused on the positions Lucas-Kanade confirmed, as the demo's paper-eval step
     # scores it (configs/demo/default.yaml eval.paper_overrides)
-    refine = Postprocess.from_config(load_config("dynpt", "tiny-cpu", overrides=[
-        *load_config("demo", "default").eval.paper_overrides, "eval.mobility=epipolar"]).eval)
+    paper_post = Postprocess.from_config(paper_eval_config(load_config("demo", "default")))
     noises = [float(s) for s in args.noise.split(",")]
     text = ""
     for source in args.data:
         items, _ = load_source(source, eval_cfg)
-        text += markdown(f"{source} ({len(items)} videos)", measure(items, noises, tracker, refine, args.seed)) + "\n"
+        text += markdown(f"{source} ({len(items)} videos)", measure(items, noises, tracker, paper_post, args.seed)) + "\n"
         print(text, flush=True)
     if args.out:
         write_text(args.out, text)

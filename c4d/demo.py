@@ -170,10 +170,7 @@ class Demo:
         dirs = {p: folder / p for p in d.presets}
         for preset, target in dirs.items():
             self.render(preset, "val", e.paper_scenes, target, e.paper_resolution, PAPER_FRAMES)
-        eval_cfg = load_config("dynpt", self.cfg.train.config, overrides=[
-            "eval.protocol=c4d-paper", "eval.num_scenes=0", *e.paper_overrides,
-            "eval.mobility=epipolar"]).eval  # last: the post-processed row always fuses
-        results = _score(checkpoint, dirs, eval_cfg)
+        results = _score(checkpoint, dirs, paper_eval_config(self.cfg))
         write_json(folder / "eval.json", results)
         return {"results": results, "file": self.stored(folder / "eval.json"),
                 "scenes_per_preset": e.paper_scenes, "resolution": list(e.paper_resolution),
@@ -270,6 +267,15 @@ def readme_pictures(pictures: Path) -> Path:
     labels = [f"frame {t}" + (", most moving" if t == most else "") for t in frames]
     write_image(out / "tracks.png", side_by_side([overlay[t] for t in frames], labels))
     return out
+
+
+def paper_eval_config(cfg):
+    """The dynpt `eval` config the paper-eval step scores with, for demo config `cfg`: the paper's
+    protocol, `eval.paper_overrides`, and the fused mobility last (so the post-processed row always
+    fuses, whatever the overrides say). `benchmarks/mobility_cue.py` post-processes as it says."""
+    return load_config("dynpt", cfg.train.config, overrides=[
+        "eval.protocol=c4d-paper", "eval.num_scenes=0", *cfg.eval.paper_overrides,
+        "eval.mobility=epipolar"]).eval
 
 
 def _score(checkpoint: str, sources: dict[str, Path], eval_cfg) -> dict:

@@ -79,8 +79,8 @@ def test_refinement_lands_on_the_true_points_and_keeps_what_it_cannot_check():
     assert confirmed[:, textured].mean() > 0.95
     assert not ((refined != noisy).any(-1) & ~confirmed).any()  # what moved was confirmed
     again = refine_tracks(torch.from_numpy(video), noisy, visible, queries, TrackRefinement())
-    assert np.array_equal(again[0], refined) and np.array_equal(again[1], confirmed)  # deterministic,
-    # torch frames alike
+    # deterministic, torch frames alike
+    assert np.array_equal(again[0], refined) and np.array_equal(again[1], confirmed)
 
 
 class FixedTracker:
