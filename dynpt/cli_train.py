@@ -16,7 +16,7 @@ import sys
 from c4d_core.config import add_training_arguments, training_config
 from c4d_core.errors import UserError
 from c4d_core.ownership import output_folder
-from c4d_core.system import configure_threads, prepare_allocator
+from c4d_core.system import configure_threads, export_threads_for, prepare_allocator
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
         check_schedule(cfg.train, args.nproc_per_node)  # a mistake: one line, no process started
         child = [*(["--config", args.config] if args.config else []), *args.overrides,
                  *(["--resume"] if args.resume else [])]
+        export_threads_for(args.nproc_per_node, cfg.data.num_workers, cfg.threads)
         with output_folder(cfg.train.out_dir, "train", args.overwrite):  # claimed here, once
             return launch(args.nproc_per_node, child, verbose=getattr(args, "verbose", False))
     configure_threads(workers=cfg.data.num_workers, threads=cfg.threads)

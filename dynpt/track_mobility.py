@@ -81,6 +81,24 @@ def _window_nan_stat(values: np.ndarray, window: int, reach: int, stat) -> np.nd
     return out
 
 
+def nanpercentile_columns(values: np.ndarray, q: float) -> np.ndarray:
+    """(N,): the `q`-th percentile of each column of values (R,N) over its non-NaN entries, to
+    the bit as `np.nanpercentile(values, q, axis=0)` (its default linear method) gives it, NaN
+    where a column has none; one sort of the whole array instead of numpy's per-column loop
+    (about 60x faster on the pooled windows here)."""
+    ordered = np.sort(values, axis=0)  # NaN last
+    count = (~np.isnan(values)).sum(0)  # (N,)
+    index = (count - 1) * (np.float64(q) / 100)  # numpy's virtual index of the linear method
+    below = np.clip(np.floor(index), 0, np.maximum(count - 1, 0)).astype(np.intp)
+    above = np.minimum(below + 1, np.maximum(count - 1, 0))
+    gamma = index - below
+    a = np.take_along_axis(ordered, below[None], 0)[0]
+    b = np.take_along_axis(ordered, above[None], 0)[0]
+    diff = b - a
+    result = np.where(gamma >= 0.5, b - diff * (1 - gamma), a + diff * gamma)  # numpy's _lerp
+    return np.where(count > 0, result, np.nan)
+
+
 def fuse_mobility(tracks: np.ndarray, visible: np.ndarray, moving: np.ndarray,
                   settings: EpipolarMobility, seed: int = 0) -> np.ndarray:
     """float32 (T,N) probability that each point moves, from tracks (T,N,2) px, visible bool
@@ -92,7 +110,7 @@ def fuse_mobility(tracks: np.ndarray, visible: np.ndarray, moving: np.ndarray,
     distance = pair_distances(tracks, visible, settings.offset, seed)  # (T,N)
     with np.errstate(invalid="ignore", divide="ignore"):
         g = _window_nan_stat(distance, settings.window, settings.offset,
-                             lambda r: np.nanpercentile(r, settings.quantile, axis=0))
+                             lambda r: nanpercentile_columns(r, settings.quantile))
         h = _window_nan_stat(np.where(visible, head, np.nan), settings.window, 0,
                              lambda r: np.nanmean(r, axis=0))
         geometry = np.log(np.maximum(g, 1e-6) / settings.residual_sigmas)

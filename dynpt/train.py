@@ -498,6 +498,9 @@ class Trainer:
         summary: dict = {}
         window_start, window_clips = time.perf_counter(), 0
         reset_peak_memory(self.device)
+        if self.main:
+            log.info("training on %d process(es) x %d thread(s), %s", self.world_size,
+                     torch.get_num_threads(), self.device)
         while self.step < stop:
             terms = self.train_step(batches)
             window_clips += tc.total_batch

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from c4d_core.system import available_cpus
 from tests.dynpt_testdata import synthetic_shards
 
 NUM_SCENES = 16  # one per shard: 8 per rank and epoch, more than the 6 steps x 1 clip read
@@ -37,8 +38,11 @@ def _overrides(shards, out_dir) -> list[str]:
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run"]
 
 
-def _start(command: list[str], dump: Path | None = None) -> subprocess.Popen:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+def _start(command: list[str], dump: Path | None = None, threads: str | None = "1") -> subprocess.Popen:
+    """`command` in a process of its own; OMP_NUM_THREADS=`threads` (None: unset, the launcher's
+    own choice)."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    env |= {"PYTHONPATH": str(ROOT), **({"OMP_NUM_THREADS": threads} if threads else {})}
     if dump is not None:
         env["DYNPT_DEBUG_DUMP"] = str(dump)
     return subprocess.Popen(command, env=env, cwd=ROOT, stdout=subprocess.PIPE,
@@ -49,9 +53,10 @@ def _torchrun(launcher: list[str], args: list[str], dump: Path) -> subprocess.Po
     return _start([*TORCHRUN, *launcher, "-m", "dynpt.cli_train", "--config", "tiny-cpu", *args], dump)
 
 
-def _wait(*processes: subprocess.Popen, timeout: float = 300, grace: float = 30) -> None:
+def _wait(*processes: subprocess.Popen, timeout: float = 300, grace: float = 30) -> list[str]:
     """All launches exit 0; once one fails the others get `grace` seconds (a torchrun agent whose
-    peer died waits in its exit barrier for minutes), then every launch's output is shown."""
+    peer died waits in its exit barrier for minutes), then every launch's output is shown.
+    Returns their outputs."""
     outputs: list[list[str]] = [[] for _ in processes]
     readers = [threading.Thread(target=lambda p=p, o=o: o.append(p.stdout.read()), daemon=True)
                for p, o in zip(processes, outputs)]
@@ -70,6 +75,7 @@ def _wait(*processes: subprocess.Popen, timeout: float = 300, grace: float = 30)
     report = [f"launch {i}: exit {p.wait()}\n{''.join(o)[-3000:]}"
               for i, (p, o) in enumerate(zip(processes, outputs))]
     assert all(p.returncode == 0 for p in processes), "\n\n".join(report)
+    return ["".join(o) for o in outputs]
 
 
 def _free_port() -> int:
@@ -136,6 +142,16 @@ def test_only_rank_0_writes_checkpoints_and_logs(runs, name):
     assert len(events) == (1 if name == "nodes" else 2)  # one writer per launch (split: 2 launches)
     ckpt = torch.load(out / "checkpoints" / "step_00000006.pt", weights_only=False)
     assert len(ckpt["extra"]["rng"]) == 2 and len(ckpt["extra"]["data"]) == 2  # both ranks' state
+
+
+def test_the_launcher_divides_the_cores_among_its_processes(tmp_path):
+    """`c4d train --nproc-per-node 2` without OMP_NUM_THREADS: each process takes half the usable
+    cores, not the launcher's own count of all of them (4 threads on 2 cores: steps 10x slower)."""
+    args = ["--config", "tiny-cpu", *_overrides(synthetic_shards(NUM_SCENES, 1), tmp_path / "run"),
+            "train.steps=3"]
+    out, = _wait(_start([sys.executable, "-m", "c4d", "train", "--nproc-per-node", "2", *args],
+                        threads=None))
+    assert f"training on 2 process(es) x {max(1, available_cpus() // 2)} thread(s), cpu" in out, out
 
 
 def test_a_schedule_mistake_is_one_line(tmp_path):
