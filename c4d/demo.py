@@ -137,14 +137,17 @@ class Demo:
 
         t = self.cfg.train
         sources = "[" + ",".join(str(p) for p in self.train_dirs.values()) + "]"
+        total_batch = load_config("dynpt", t.config, overrides=list(t.overrides)).train.total_batch
         args = ["train", "--config", t.config, f"data.sources={sources}", f"train.steps={t.steps}",
-                f"train.out_dir={folder}", "eval.every=0", *t.overrides]
+                f"train.out_dir={folder}", "eval.every=0", "--nproc-per-node", t.processes,
+                f"train.batch_size={max(1, total_batch // t.processes)}", *t.overrides]
         if latest_checkpoint(folder) is not None:
             args.append("--resume")
         _c4d(*args)
         checkpoint = latest_checkpoint(folder)
         return {"checkpoint": self.stored(checkpoint), "config": t.config, "steps": t.steps,
-                "overrides": list(t.overrides), "log": self.stored(folder / "log.jsonl")}
+                "processes": t.processes, "overrides": list(t.overrides),
+                "log": self.stored(folder / "log.jsonl")}
 
     # -- 3. eval
     def eval(self, folder: Path, checkpoint: str) -> dict:
@@ -196,7 +199,7 @@ class Demo:
         from c4d_pipeline.eval_recon import evaluate
         from c4d_pipeline.flow import build_flow
         from c4d_pipeline.outputs import read_reconstruction
-        from c4d_pipeline.pipeline import reconstruct
+        from c4d_pipeline.pipeline import Reused, reconstruct
         from c4d_pipeline.pointmap_sources import build_pointmaps
         from datagen.shards import read_scenes
         from dynpt.inference import load_tracker
@@ -213,11 +216,13 @@ class Demo:
             track_result = tracker.track(scene.rgb)
             name = f"scene-{index:03d}"
             metrics[name], outputs[name] = {}, {}
+            base = load_config("c4d", r.config, overrides=list(r.overrides))
+            # the same pointmaps and flow for both runs, computed once
+            pointmaps, flow = Reused(build_pointmaps("gt", base, scene=scene)), Reused(build_flow(r.flow))
             for variant in ("C4D", "GA only"):  # rows of the ablation table (their overrides)
                 cfg = load_config("c4d", r.config, overrides=[*r.overrides, *RUNS[variant]])
                 target = folder / name / variant.lower().replace(" ", "-")
-                reconstruct(scene.rgb, build_pointmaps("gt", cfg, scene=scene),
-                            build_flow(r.flow), track_result, cfg, target,
+                reconstruct(scene.rgb, pointmaps, flow, track_result, cfg, target,
                             inputs={"scene": f"{source} #{index}",
                                     "pointmaps": "ground truth + noise + static-world bias",
                                     "tracker": checkpoint})
@@ -414,7 +419,9 @@ def summary_markdown(records: dict) -> str:
     size = "x".join(str(v) for v in rec.get("resolution", ())) or "the val set's size"
     rendered = records.get("recon-data", {}).get("rendered")
     cpu = rec.get("cpu_seconds", {})
-    lines += ["", f"Tracker: `{train['config']}` trained {train['steps']} steps (overrides: "
+    processes = train.get("processes", 1)
+    lines += ["", f"Tracker: `{train['config']}` trained {train['steps']} steps"
+              f"{f' on {processes} processes' if processes > 1 else ''} (overrides: "
               f"`{overrides}`); checkpoint `{train['checkpoint']}`; training log `{train['log']}`.", "",
               f"## Reconstruction of the first {len(rec['metrics'])} scenes of {rec['source']}", "",
               (f"The first {len(rec['metrics'])} val scenes rendered again at {size} (the same scenes, "

@@ -12,7 +12,7 @@ from c4d_pipeline.ground_truth import GroundTruthPointmaps, oracle_tracks
 from c4d_pipeline.outputs import (Reconstruction, ply_points, read_ply, read_reconstruction, read_tum,
                                   tum_lines, write_reconstruction)
 from c4d_core import geometry
-from c4d_pipeline.pipeline import lift_tracks, reconstruct
+from c4d_pipeline.pipeline import Reused, lift_tracks, reconstruct
 from tests.synthetic_scenes import make_box_scene
 
 
@@ -111,3 +111,38 @@ def test_reconstruct_writes_the_contract_table(tmp_path):
     no_tracker = reconstruct(scene.rgb, NanSource(scene), build_flow("gt", scene=scene), None, cfg)
     assert np.isfinite(no_tracker.points).all()
     assert no_tracker.report["inputs"]["motion_masks"] == "flow-only" and no_tracker.tracks_world is None
+
+
+def test_inputs_reused_across_runs_are_computed_once_and_give_the_same_reconstruction(tmp_path):
+    """`Reused` (C4D and GA only in `c4d demo`): the wrapped source and estimator run once for
+    two reconstructions, each of which equals one from fresh inputs; callers get copies."""
+    scene = make_box_scene(num_frames=6, height=16, width=24, num_tracks=48, seed=5)
+    calls = {"pointmaps": 0, "flow": 0}
+
+    class Counted(GroundTruthPointmaps):
+        def pointmaps(self, frames, edges):
+            calls["pointmaps"] += 1
+            return super().pointmaps(frames, edges)
+
+    flow = build_flow("gt", scene=scene)
+
+    class CountedFlow:
+        def flow(self, frames, pairs):
+            calls["flow"] += 1
+            return flow.flow(frames, pairs)
+
+    pointmaps, flows = Reused(Counted(scene)), Reused(CountedFlow())
+    for weights in ([], ["weights.cma=0", "weights.cts=0", "weights.pts=0"]):  # C4D, GA only
+        cfg = load_config("c4d", "tiny", overrides=["graph.window=2", "optim.stage1_iters=10",
+                                                    "optim.stage2_iters=5", "pts.window=3",
+                                                    "pts.extend=1", *weights])
+        reused = reconstruct(scene.rgb, pointmaps, flows, oracle_tracks(scene), cfg)
+        fresh = reconstruct(scene.rgb, GroundTruthPointmaps(scene), flow, oracle_tracks(scene), cfg)
+        np.testing.assert_array_equal(reused.cam_to_world, fresh.cam_to_world)
+        np.testing.assert_array_equal(reused.depth, fresh.depth)
+        assert reused.report["inputs"]["pointmap_source"] == "Counted"
+    assert calls == {"pointmaps": 1, "flow": 1}
+    edges = np.array([[0, 1], [1, 0]])
+    first = pointmaps.pointmaps(scene.rgb, edges)  # other pairs: computed again
+    first.pts_i[:] = np.nan  # a caller's change does not reach the next caller
+    assert np.isfinite(pointmaps.pointmaps(scene.rgb, edges).pts_i).all() and calls["pointmaps"] == 2

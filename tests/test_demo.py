@@ -49,7 +49,7 @@ def test_every_step_ran_and_the_summary_has_every_number(demo_out):
     readme = demo_out / "pictures" / "readme"
     assert sorted(p.name for p in readme.glob("*.png")) == [
         "dataset_sheet.png", "tracks.png", "trajectory.png"]
-    assert "trained 60 steps (overrides: `loss.mobility_pos_weight=1.0`)" in summary
+    assert "trained 60 steps on 2 processes (overrides: `loss.mobility_pos_weight=1.0`)" in summary
     assert "the track overlay and the reconstruction report show recon-data/movi-e #0" in summary
     # the reconstructed val scene was rendered again at recon.resolution, and reconstructed there
     from datagen.shards import read_scenes
