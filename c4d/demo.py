@@ -52,10 +52,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _c4d(*argv) -> None:
-    """Run one `c4d` subcommand in this process (its errors propagate)."""
+    """Run one `c4d` subcommand in this process (its errors propagate), then take back this
+    process's threads: a subcommand that starts workers leaves fewer (`c4d datagen --workers 2`:
+    one, which ran the paper-eval step's scoring after its rendering 1.4x slower)."""
     argv = [str(a) for a in argv]
     log.info("$ c4d %s", " ".join(argv))
-    run_subcommand(argv)
+    try:
+        run_subcommand(argv)
+    finally:
+        configure_threads()
 
 
 class Demo:
@@ -110,7 +115,6 @@ class Demo:
             log.info("[%s] done before, skipped (delete %s to redo it)", name, folder)
             return json.loads(done.read_text())
         log.info("[%s] ...", name)
-        configure_threads()  # a step's subcommands may have left fewer (for their workers)
         folder.mkdir(parents=True, exist_ok=True)
         start = time.perf_counter()
         record = step(folder)

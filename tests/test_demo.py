@@ -120,3 +120,24 @@ def test_every_run_folder_keeps_its_resolved_config(demo_out):
     assert train == to_dict(load_config("dynpt", demo_out / "train" / "config.yaml"))
     data = yaml.safe_load((demo_out / "data" / "train" / "movi-e" / "config-train.yaml").read_text())
     assert data["resolution"] == list(demo.data.resolution) and data["frames"] == demo.data.frames
+
+
+def test_a_subcommand_that_starts_workers_leaves_the_demo_its_threads(tmp_path, monkeypatch):
+    """`c4d datagen --workers 2` takes its threads down to leave the workers their cores; the
+    demo's own work after it (the paper-eval step scores the scenes it rendered) gets them back."""
+    import torch
+
+    from c4d import demo
+    from c4d_core import system
+
+    monkeypatch.setattr(system, "_USER_OMP", None)  # as without OMP_NUM_THREADS (conftest sets it)
+    monkeypatch.setattr(system, "available_cpus", lambda: 4)
+    monkeypatch.setattr(system, "_override", {})
+    try:
+        assert system.configure_threads() == 4
+        demo._c4d("datagen", "--preset", "movi-e", "--num-scenes", 2, "--out", tmp_path / "d",
+                  "--resolution", "32x32", "--frames", 2, "--workers", 2)
+        assert torch.get_num_threads() == 4
+    finally:
+        monkeypatch.undo()
+        system.configure_threads()
