@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _c4d(*argv) -> None:
     """Run one `c4d` subcommand in this process (its errors propagate), then take back this
     process's threads: a subcommand that starts workers leaves fewer (`c4d datagen --workers 2`:
-    one, which ran the paper-eval step's scoring after its rendering 1.4x slower)."""
+    one, on which the paper-eval step's tracking after its rendering ran 1.7x slower)."""
     argv = [str(a) for a in argv]
     log.info("$ c4d %s", " ".join(argv))
     try:

@@ -208,7 +208,8 @@ def reconstruct(frames: np.ndarray, pointmap_source: PointmapSource, flow_estima
         tracks_world, valid = lift_tracks(result.points, tracks["tracks"], tracks["visible"])
     report = {
         "inputs": {"frames": num_frames, "height": h, "width": w, "edges": len(edges),
-                   "pointmap_source": _kind(pointmap_source), "flow": _kind(flow_estimator), "motion_masks": mask_method,
+                   "pointmap_source": _kind(pointmap_source), "flow": _kind(flow_estimator),
+                   "motion_masks": mask_method,
                    **(inputs or {})},
         "config": to_dict(cfg),
         "seconds": seconds,
