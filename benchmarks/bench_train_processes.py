@@ -12,8 +12,9 @@ repeat) so that they see the same background load. Figures per layout: the media
 repeats of the clips/s the command logs, its last `(steps - 10) / log_every` windows (the first
 window holds the start-up); each layout's ratio to the first one, paired by repeat; the load
 average; and whether the repeats of a layout logged the same losses to the last digit (the
-training is then bit-reproducible run to run). Defaults: `c4d demo`'s training (tiny-cpu-2x, lr
-0.004, plain BCE on mobility). Prints a markdown table.
+training is then bit-reproducible run to run). Defaults: `c4d demo`'s training (its config's
+`train.config` and `train.overrides`: tiny-cpu-2x, lr 0.004, plain BCE on mobility), with
+`--set` overrides after them. Prints a markdown table.
 """
 
 from __future__ import annotations
@@ -28,9 +29,10 @@ import sys
 from pathlib import Path
 
 from timing import load_average, this_commit
+from c4d_core.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
-DEMO_OVERRIDES = ["loss.mobility_pos_weight=1.0", "train.lr=0.004"]  # configs/demo/default.yaml
+DEMO_TRAIN = load_config("demo", "default").train  # the training `c4d demo` runs
 RATE = re.compile(r"step (\d+)/\d+ .* ([0-9.]+) clips/s")
 
 
@@ -40,14 +42,12 @@ def run(layout: str, args, out: Path) -> tuple[float, list[str]]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("OMP_")}
     env["PYTHONPATH"] = str(ROOT)
     sources = "[" + ",".join(args.shards) + "]"
-    total = 4  # tiny-cpu's train.total_batch; --set train.total_batch=... changes it
-    for item in args.set:
-        if item.startswith("train.total_batch="):
-            total = int(item.split("=", 1)[1])
+    overrides = [*DEMO_TRAIN.overrides, *args.set]
+    total = load_config("dynpt", args.config, overrides=overrides).train.total_batch
     command = [sys.executable, "-m", "c4d", "train", "--threads", str(threads),
                "--nproc-per-node", str(processes), "--config", args.config,
                f"data.sources={sources}", f"train.steps={args.steps}", f"train.out_dir={out}",
-               "eval.every=0", f"train.batch_size={total // processes}", *DEMO_OVERRIDES, *args.set]
+               "eval.every=0", f"train.batch_size={total // processes}", *overrides]
     shutil.rmtree(out, ignore_errors=True)
     done = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True)
     if done.returncode:
@@ -62,7 +62,7 @@ def main() -> None:
     parser.add_argument("--layouts", default="1x2,2x1", help="PxT: P processes of T threads each")
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--config", default="tiny-cpu-2x")
+    parser.add_argument("--config", default=DEMO_TRAIN.config)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--work", default="/tmp/bench-train-processes")
     args = parser.parse_args()

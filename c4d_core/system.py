@@ -271,8 +271,7 @@ def configure_threads(workers: int = 0, threads: int | None = None) -> int:
     OMP_NUM_THREADS, otherwise automatic.
     Libraries that start later (and child processes) inherit the count through OMP_NUM_THREADS etc.
     """
-    count = (threads or _override.get("threads") or _user_omp_threads()
-             or max(1, available_cpus() - workers))
+    count = _thread_count(workers, threads)
     _set_threads(count)
     return count
 
@@ -285,11 +284,16 @@ def export_threads_for(processes: int, workers: int = 0, threads: int | None = N
     process's usable cores divided among them, less `workers` each (at least 1). Without it each
     would take the count this process exported for itself (every core) for the user's choice: with
     2 processes on 2 cores, 4 spinning threads made the demo's training steps 10x slower."""
-    count = (threads or _override.get("threads") or _user_omp_threads()
-             or max(1, available_cpus() // processes - workers))
-    for name in _THREAD_VARIABLES:
-        os.environ[name] = str(count)
+    count = _thread_count(workers, threads, processes)
+    _export_threads(count)
     return count
+
+
+def _thread_count(workers: int, threads: int | None, processes: int = 1) -> int:
+    """`threads`, else the `--threads` count, else the user's OMP_NUM_THREADS, else the usable
+    cores shared by `processes` processes, less `workers` each (at least 1)."""
+    return (threads or _override.get("threads") or _user_omp_threads()
+            or max(1, available_cpus() // processes - workers))
 
 
 def _user_omp_threads() -> int | None:
@@ -322,9 +326,14 @@ def init_worker_threads(*_args) -> None:
     _set_threads(1)
 
 
-def _set_threads(count: int) -> None:
+def _export_threads(count: int) -> None:
+    """The thread variables that libraries loaded later and child processes read."""
     for name in _THREAD_VARIABLES:
         os.environ[name] = str(count)
+
+
+def _set_threads(count: int) -> None:
+    _export_threads(count)
     # Libraries already loaded are set directly (this floor module does not import them).
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(count)
