@@ -50,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tracker", metavar="CKPT", help="DynPT checkpoint from `c4d train`; without it "
                         "the motion masks come from optical flow alone and stage 2 (PTS) is skipped "
                         "(key tracker.checkpoint)")
-    parser.add_argument("--flow", help="optical flow: 'dis', 'dis:fast' or 'raft:PATH' (key flow) [dis]")
+    parser.add_argument("--flow", help="optical flow: 'dis', 'dis:fast', 'dis:medium@2x+chain' or "
+                        "'raft:PATH' (key flow) [dis]")
     parser.add_argument("--preset", default="default", help="c4d config preset or YAML file [default]")
     parser.add_argument("--config", action="append", default=[], metavar="YAML",
                         help="extra config file merged over the preset (repeatable)")
@@ -106,17 +107,23 @@ def _check_out(out: Path, overwrite: bool) -> None:
 
 
 class _FlowWithProgress:
-    """Runs a flow estimator over the pairs in chunks, with a progress bar."""
+    """Runs a flow estimator over the pairs in chunks, with a progress bar: a chunk holds the pairs
+    whose earlier frame lies in a block of `frames_per_chunk` frames, so an estimator that reuses
+    work between pairs of nearby frames (`dis...+chain`: the consecutive steps) keeps most of it."""
 
-    def __init__(self, estimator, chunk: int = 8):
-        self.estimator, self.chunk = estimator, chunk
+    def __init__(self, estimator, frames_per_chunk: int = 16):
+        self.estimator, self.frames_per_chunk = estimator, frames_per_chunk
 
     def flow(self, frames: np.ndarray, pairs) -> np.ndarray:
-        pairs = list(pairs)
-        parts = []
-        for start in tqdm(range(0, len(pairs), self.chunk), desc="optical flow", unit="chunk", leave=False):
-            parts.append(self.estimator.flow(frames, pairs[start:start + self.chunk]))
-        return np.concatenate(parts) if parts else np.zeros((0, *frames.shape[1:3], 2), np.float32)
+        pairs = [tuple(map(int, p)) for p in pairs]
+        out = np.zeros((len(pairs), *frames.shape[1:3], 2), np.float32)  # (P,H,W,2)
+        blocks: dict[int, list[int]] = {}  # block of the earlier frame -> indices of its pairs
+        for p, pair in enumerate(pairs):
+            blocks.setdefault(min(pair) // self.frames_per_chunk, []).append(p)
+        for block in tqdm(sorted(blocks), desc="optical flow", unit="chunk", leave=False):
+            index = blocks[block]
+            out[index] = self.estimator.flow(frames, [pairs[p] for p in index])
+        return out
 
 
 def run(args: argparse.Namespace) -> int:

@@ -15,6 +15,12 @@ centres at integer coordinates, x the column), camera motion included, as in the
                           (2x at 256x256: motion-mask IoU 0.41 against 0.32 on the demo's 4
                           scenes, 0.52 against 0.40 on 4 others; ~3x the time; docs/RESULTS.md 1,
                           docs/results/masks.md)
+  'dis...+chain'          (after any of the two above) DIS searches only consecutive frames; a pair
+                          i -> j farther apart is the composition of the steps i -> i+1 -> ... -> j
+                          (`compose_flows`). DIS's coarse-to-fine search loses large displacements:
+                          on 256x256 MOVi-E its error on static pixels 9 frames apart is 22-29 px
+                          mean, the chained flow's 4-13 px, and CMA fed by the search's errors
+                          pulls the cameras (docs/results/cma_flow.md). Fewer searches, too.
   'gt'                    exact flow of a datagen `Scene` for ANY pair (i, j), from depth,
                           segmentation, camera and object poses (needs `scene=`;
                           `c4d_pipeline.ground_truth.GroundTruthFlow`, imported lazily)
@@ -31,6 +37,7 @@ import cv2
 import numpy as np
 
 from c4d_core.errors import UserError
+from c4d_core.geometry import pixel_grid
 from c4d_pipeline.flow_inputs import Pair, check_flow_inputs
 from datagen.scene import Scene
 
@@ -48,17 +55,21 @@ class FlowEstimator(Protocol):
 
 
 def build_flow(spec: str, scene: Scene | None = None, device=None) -> FlowEstimator:
-    """The flow estimator named by `spec` ('dis[:PRESET]', 'gt', 'raft:PATH'); see the module doc.
+    """The flow estimator named by `spec` ('dis[:PRESET][@Nx][+chain]', 'gt', 'raft:PATH'); see
+    the module doc.
 
     `scene` is required by 'gt' (its frames must be the frames later passed to `flow`, at any
     resolution); `device` is only used by 'raft'.
     """
     name, _, arg = spec.partition(":")
-    if name == "dis":
-        preset, _, factor = (arg or "medium").partition("@")
+    if name.partition("+")[0] == "dis":
+        search, _, option = spec.partition("+")
+        if option not in ("", "chain"):
+            raise UserError(f"flow {spec!r}: the only option after '+' is 'chain', e.g. 'dis:medium@3x+chain'")
+        preset, _, factor = (search.partition(":")[2] or "medium").partition("@")
         if factor and not re.fullmatch(r"[1-8]x", factor):
             raise UserError(f"flow {spec!r}: the upsampling after '@' is 1x to 8x, e.g. 'dis:medium@2x'")
-        return DISFlow(preset or "medium", int(factor[:-1]) if factor else 1)
+        return DISFlow(preset or "medium", int(factor[:-1]) if factor else 1, chain=option == "chain")
     if name == "gt":
         if scene is None:
             raise UserError("flow 'gt' needs a datagen scene; use flow 'dis' for a plain video")
@@ -75,19 +86,48 @@ def build_flow(spec: str, scene: Scene | None = None, device=None) -> FlowEstima
         from c4d_pipeline.raft import RaftFlow  # torch model: imported only when asked for
 
         return RaftFlow(arg, device)
-    raise UserError(f"unknown flow {spec!r}; choose 'dis', 'dis:fast', 'dis:medium@2x', 'gt' or "
-                    "'raft:PATH'")
+    raise UserError(f"unknown flow {spec!r}; choose 'dis', 'dis:fast', 'dis:medium@2x', "
+                    "'dis:medium@3x+chain', 'gt' or 'raft:PATH'")
+
+
+REMAP_COLUMNS = 1024  # cv2.remap's maps are images of fewer than 32767 rows and columns
+
+
+def sample_flow(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Bilinear flow (H,W,2) at points xy (M,2) -> (M,2); points outside use the nearest edge."""
+    count = len(xy)
+    if count == 0:
+        return np.zeros((0, 2))
+    columns = min(count, REMAP_COLUMNS)
+    rows = -(-count // columns)
+    map_xy = np.zeros((rows * columns, 2), np.float32)
+    map_xy[:count] = xy
+    map_xy = map_xy.reshape(rows, columns, 2)  # the points as an image of rows x columns
+    sampled = cv2.remap(flow.astype(np.float32), map_xy[..., 0], map_xy[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE)
+    return sampled.reshape(-1, 2)[:count].astype(np.float64)  # (M,2)
+
+
+def compose_flows(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """The flow i -> k (H,W,2) of the flows i -> j `first` (H,W,2) and j -> k `second` (H,W,2):
+    first(x) + second(x + first(x)), the second sampled bilinearly where the first lands (edges
+    replicated). With second = the flow j -> i it is the forward-backward residual."""
+    height, width = first.shape[:2]
+    landing = (pixel_grid(height, width) + first).reshape(-1, 2)  # (H*W,2) where each pixel lands
+    return first + sample_flow(second, landing).reshape(height, width, 2)
 
 
 class DISFlow:
     """OpenCV's Dense Inverse Search flow on grey-level frames (no weights, CPU), optionally on
     frames upsampled `upsample` times: the flow (Hu,Wu,2) there is averaged over each block of
-    upsample x upsample pixels (a frame pixel) and divided by `upsample`."""
+    upsample x upsample pixels (a frame pixel) and divided by `upsample`. With `chain`, DIS
+    searches consecutive frames only and farther pairs compose those steps (at the upsampled size);
+    the steps are kept only while a pair still needs them, so memory does not grow with the video."""
 
-    def __init__(self, preset: str = "medium", upsample: int = 1):
+    def __init__(self, preset: str = "medium", upsample: int = 1, chain: bool = False):
         if preset not in DIS_PRESETS:
             raise UserError(f"unknown DIS preset {preset!r}; choose one of {', '.join(DIS_PRESETS)}")
-        self.preset, self.upsample = preset, int(upsample)
+        self.preset, self.upsample, self.chain = preset, int(upsample), bool(chain)
 
     def flow(self, frames: np.ndarray, pairs: Sequence[Pair]) -> np.ndarray:
         check_flow_inputs(frames, pairs)
@@ -98,7 +138,20 @@ class DISFlow:
         if n > 1:
             grey = [cv2.resize(g, (width * n, height * n), interpolation=cv2.INTER_CUBIC) for g in grey]
         out = np.zeros((len(pairs), height, width, 2), np.float32)  # (P,H,W,2)
-        for p, (i, j) in enumerate(pairs):
-            flow = dis.calc(grey[i], grey[j], None)  # (H*n,W*n,2) pixels of the upsampled frames
+        steps: dict[tuple[int, int], np.ndarray] = {}  # chain: (t, t +- 1) -> (H*n,W*n,2) step flow
+        for p in sorted(range(len(pairs)), key=lambda p: min(pairs[p])):  # chain: steps freed in order
+            i, j = (int(f) for f in pairs[p])
+            if not self.chain:
+                flow = dis.calc(grey[i], grey[j], None)  # (H*n,W*n,2) pixels of the upsampled frames
+            else:
+                for key in [key for key in steps if min(key) < min(i, j)]:  # no later pair needs it
+                    del steps[key]
+                step = 1 if j > i else -1
+                for t in range(i, j, step):
+                    if (t, t + step) not in steps:
+                        steps[(t, t + step)] = dis.calc(grey[t], grey[t + step], None)
+                flow = steps[(i, i + step)]
+                for t in range(i + step, j, step):  # i -> t, then t -> t + step
+                    flow = compose_flows(flow, steps[(t, t + step)]).astype(np.float32)
             out[p] = flow if n == 1 else cv2.resize(flow, (width, height), interpolation=cv2.INTER_AREA) / n
         return out

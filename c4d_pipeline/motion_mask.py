@@ -60,6 +60,7 @@ from c4d_core.config import defaults_from
 from c4d_core.epipolar import fundamental_lmeds, sampson_distance
 from c4d_core.errors import UserError
 from c4d_core.geometry import pixel_grid, project, unproject_depth_map
+from c4d_pipeline.flow import compose_flows, sample_flow
 
 log = logging.getLogger(__name__)
 Pair = tuple[int, int]
@@ -129,24 +130,6 @@ def static_points(tracks, t: int, cfg: MotionMaskConfig = MotionMaskConfig()) ->
     return xy[static].astype(np.float64)
 
 
-REMAP_COLUMNS = 1024  # cv2.remap's maps are images of fewer than 32767 rows and columns
-
-
-def sample_flow(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Bilinear flow (H,W,2) at points xy (M,2) -> (M,2); points outside use the nearest edge."""
-    count = len(xy)
-    if count == 0:
-        return np.zeros((0, 2))
-    columns = min(count, REMAP_COLUMNS)
-    rows = -(-count // columns)
-    map_xy = np.zeros((rows * columns, 2), np.float32)
-    map_xy[:count] = xy
-    map_xy = map_xy.reshape(rows, columns, 2)  # the points as an image of rows x columns
-    sampled = cv2.remap(flow.astype(np.float32), map_xy[..., 0], map_xy[..., 1], cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_REPLICATE)
-    return sampled.reshape(-1, 2)[:count].astype(np.float64)  # (M,2)
-
-
 def _grid_points(height: int, width: int, count: int) -> np.ndarray:
     """About `count` pixel centres (M,2) on a regular grid over the image."""
     step = max(1, int(np.sqrt(height * width / max(count, 1))))
@@ -193,10 +176,7 @@ def pair_motion_mask(flow: np.ndarray, static_xy: np.ndarray, cfg: MotionMaskCon
 def forward_backward_error(flow: np.ndarray, back: np.ndarray) -> np.ndarray:
     """Pixels (H,W) by which the flow i -> j (H,W,2) and the flow j -> i (H,W,2), sampled where
     the first lands (bilinear, edges replicated), fail to cancel: |f_ij(x) + f_ji(x + f_ij(x))|."""
-    height, width = flow.shape[:2]
-    target = (pixel_grid(height, width) + flow).reshape(-1, 2)  # (H*W,2) where each pixel lands
-    returned = sample_flow(back, target).reshape(height, width, 2)
-    return np.linalg.norm(flow + returned, axis=-1)
+    return np.linalg.norm(compose_flows(flow, back), axis=-1)
 
 
 def guided_filter(guide: np.ndarray, image: np.ndarray, radius: int, eps: float) -> np.ndarray:

@@ -271,7 +271,8 @@ def test_guided_refinement_needs_the_frames(scene, graph):
 def test_flow_is_sampled_at_any_number_of_points():
     """cv2.remap's maps hold fewer than 32767 columns: the forward-backward check of a 256x256
     pair samples 65,536 points, and a rotation's flow and its inverse cancel there."""
-    from c4d_pipeline.motion_mask import forward_backward_error, sample_flow
+    from c4d_pipeline.flow import sample_flow
+    from c4d_pipeline.motion_mask import forward_backward_error
 
     height = width = 256
     grid = pixel_grid(height, width)  # (H,W,2)
