@@ -5,7 +5,10 @@
 Per frame size: seconds per pair (median of `--repeats` runs over `--pairs` pairs of offsets 1
 and 3) of the flows 'dis' (medium, the baseline of the ratios), 'dis:fast' and 'gt', and of the
 masks: C4D's correspondence-guided mask (oracle tracks, F by LMedS + refit, Sampson distance)
-and the flow-only baseline (ego-flow from per-frame geometry, normalised error). Prints markdown.
+and the flow-only baseline (ego-flow from per-frame geometry, normalised error). Then, per size,
+seconds per 12-frame video over the whole default scene graph (offsets 1,3,5,7,9 both ways: 70
+pairs) of DIS searching every pair against DIS chained over consecutive frames ('+chain'), plain
+and on frames upsampled 3x (the demo's). Prints markdown.
 """
 
 from __future__ import annotations
@@ -16,9 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from c4d_core.config import load_config
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.ground_truth import oracle_tracks
 from c4d_pipeline.motion_mask import correspondence_motion_masks, ego_flow, flow_only_motion_masks
+from c4d_pipeline.scene_graph import graph_from_config
 from timing import median_seconds
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.synthetic_scenes
@@ -54,6 +59,18 @@ def main() -> None:
         base = seconds["flow dis (medium)"]
         for name, value in seconds.items():
             print(f"| {height}x{width} | {name} | {value:.4f} | {value / base:.2f}x |", flush=True)
+    print("\n| size | flow over a 12-frame scene graph (70 pairs) | s / video | vs searching every pair |")
+    print("|---|---|---|---|")
+    graph = load_config("c4d", "default").graph
+    for size in args.sizes.split(","):
+        height, width = (int(v) for v in size.split("x"))
+        scene = make_box_scene(num_frames=12, height=height, width=width, num_tracks=10)
+        pairs = [tuple(map(int, e)) for e in graph_from_config(12, graph)]
+        for search in ("dis", "dis:medium@3x"):
+            plain = median_seconds(lambda: build_flow(search).flow(scene.rgb, pairs), args.repeats)
+            chained = median_seconds(lambda: build_flow(search + "+chain").flow(scene.rgb, pairs), args.repeats)
+            print(f"| {height}x{width} | {search} | {plain:.3f} | 1.00x |", flush=True)
+            print(f"| {height}x{width} | {search}+chain | {chained:.3f} | {chained / plain:.2f}x |", flush=True)
 
 
 if __name__ == "__main__":

@@ -15,12 +15,15 @@ centres at integer coordinates, x the column), camera motion included, as in the
                           (2x at 256x256: motion-mask IoU 0.41 against 0.32 on the demo's 4
                           scenes, 0.52 against 0.40 on 4 others; ~3x the time; docs/RESULTS.md 1,
                           docs/results/masks.md)
-  'dis...+chain'          (after any of the two above) DIS searches only consecutive frames; a pair
-                          i -> j farther apart is the composition of the steps i -> i+1 -> ... -> j
-                          (`compose_flows`). DIS's coarse-to-fine search loses large displacements:
-                          on 256x256 MOVi-E its error on static pixels 9 frames apart is 22-29 px
-                          mean, the chained flow's 4-13 px, and CMA fed by the search's errors
-                          pulls the cameras (docs/results/cma_flow.md). Fewer searches, too.
+  'dis...+chain'          (after any of the two above) a pair i -> j more than one frame apart takes,
+                          per pixel, whichever of two flows matches the frames better (`fuse_flows`:
+                          the colour difference over a 7x7 patch after warping frame j back): DIS's
+                          own search of the pair, or the consecutive searches composed i -> i+1 ->
+                          ... -> j (`compose_flows`). DIS's coarse-to-fine search loses large
+                          displacements (on 256x256 MOVi-E its error on static pixels 9 frames apart
+                          is 22-29 px mean, the composed flow's 4-13 px) and the composition drifts
+                          where the search is right; CMA fed by either error pulls the cameras
+                          (docs/results/cma_flow.md). Pairs of consecutive frames are unchanged.
   'gt'                    exact flow of a datagen `Scene` for ANY pair (i, j), from depth,
                           segmentation, camera and object poses (needs `scene=`;
                           `c4d_pipeline.ground_truth.GroundTruthFlow`, imported lazily)
@@ -108,6 +111,31 @@ def sample_flow(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return sampled.reshape(-1, 2)[:count].astype(np.float64)  # (M,2)
 
 
+FUSION_PATCH = 7  # pixels: the side of the patch whose colour difference picks a pixel's flow
+
+
+def warp_back(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """`image` (H,W,C) of frame j sampled where the flow i -> j (H,W,2) lands each pixel of frame i
+    (bilinear, edges replicated): frame j seen from frame i, float32 (H,W,C)."""
+    height, width = flow.shape[:2]
+    landing = pixel_grid(height, width).astype(np.float32) + flow  # (H,W,2)
+    return cv2.remap(image.astype(np.float32), landing[..., 0], landing[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+
+
+def fuse_flows(source: np.ndarray, target: np.ndarray, candidates: Sequence[np.ndarray],
+               patch: int = FUSION_PATCH) -> np.ndarray:
+    """Per pixel, the candidate flow i -> j (each (H,W,2)) whose warp of frame j `target` (H,W,3)
+    best matches frame i `source` (H,W,3): the least mean absolute colour difference over a
+    patch x patch window; ties go to the later candidate. -> float32 (H,W,2)."""
+    frame = source.astype(np.float32)
+    costs = [cv2.boxFilter(np.abs(warp_back(target, flow) - frame).mean(-1), -1, (patch, patch))
+             for flow in candidates]  # each (H,W)
+    best = np.argmin(np.stack(costs[::-1]), axis=0)  # (H,W) index into the reversed list: ties -> later
+    stacked = np.stack(candidates[::-1]).astype(np.float32)  # (K,H,W,2)
+    return np.take_along_axis(stacked, best[None, ..., None], axis=0)[0]
+
+
 def compose_flows(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """The flow i -> k (H,W,2) of the flows i -> j `first` (H,W,2) and j -> k `second` (H,W,2):
     first(x) + second(x + first(x)), the second sampled bilinearly where the first lands (edges
@@ -120,9 +148,10 @@ def compose_flows(first: np.ndarray, second: np.ndarray) -> np.ndarray:
 class DISFlow:
     """OpenCV's Dense Inverse Search flow on grey-level frames (no weights, CPU), optionally on
     frames upsampled `upsample` times: the flow (Hu,Wu,2) there is averaged over each block of
-    upsample x upsample pixels (a frame pixel) and divided by `upsample`. With `chain`, DIS
-    searches consecutive frames only and farther pairs compose those steps (at the upsampled size);
-    the steps are kept only while a pair still needs them, so memory does not grow with the video."""
+    upsample x upsample pixels (a frame pixel) and divided by `upsample`. With `chain`, a pair more
+    than one frame apart fuses its own search with the consecutive searches composed (at the
+    upsampled size; see the module doc); those steps are kept only while a pair still needs them,
+    so memory does not grow with the video."""
 
     def __init__(self, preset: str = "medium", upsample: int = 1, chain: bool = False):
         if preset not in DIS_PRESETS:
@@ -137,21 +166,26 @@ class DISFlow:
         grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]  # T x (H,W) uint8
         if n > 1:
             grey = [cv2.resize(g, (width * n, height * n), interpolation=cv2.INTER_CUBIC) for g in grey]
+
+        def to_frames(flow: np.ndarray) -> np.ndarray:  # (H*n,W*n,2) upsampled pixels -> (H,W,2)
+            return flow if n == 1 else cv2.resize(flow, (width, height), interpolation=cv2.INTER_AREA) / n
+
         out = np.zeros((len(pairs), height, width, 2), np.float32)  # (P,H,W,2)
         steps: dict[tuple[int, int], np.ndarray] = {}  # chain: (t, t +- 1) -> (H*n,W*n,2) step flow
         for p in sorted(range(len(pairs)), key=lambda p: min(pairs[p])):  # chain: steps freed in order
             i, j = (int(f) for f in pairs[p])
-            if not self.chain:
-                flow = dis.calc(grey[i], grey[j], None)  # (H*n,W*n,2) pixels of the upsampled frames
-            else:
-                for key in [key for key in steps if min(key) < min(i, j)]:  # no later pair needs it
-                    del steps[key]
-                step = 1 if j > i else -1
-                for t in range(i, j, step):
-                    if (t, t + step) not in steps:
-                        steps[(t, t + step)] = dis.calc(grey[t], grey[t + step], None)
-                flow = steps[(i, i + step)]
-                for t in range(i + step, j, step):  # i -> t, then t -> t + step
-                    flow = compose_flows(flow, steps[(t, t + step)]).astype(np.float32)
-            out[p] = flow if n == 1 else cv2.resize(flow, (width, height), interpolation=cv2.INTER_AREA) / n
+            searched = dis.calc(grey[i], grey[j], None)  # (H*n,W*n,2) pixels of the upsampled frames
+            if not self.chain or abs(j - i) == 1:
+                out[p] = to_frames(searched)
+                continue
+            for key in [key for key in steps if min(key) < min(i, j)]:  # no later pair needs it
+                del steps[key]
+            step = 1 if j > i else -1
+            for t in range(i, j, step):
+                if (t, t + step) not in steps:
+                    steps[(t, t + step)] = dis.calc(grey[t], grey[t + step], None)
+            chained = steps[(i, i + step)]
+            for t in range(i + step, j, step):  # i -> t, then t -> t + step
+                chained = compose_flows(chained, steps[(t, t + step)]).astype(np.float32)
+            out[p] = fuse_flows(frames[i], frames[j], [to_frames(searched), to_frames(chained)])
         return out

@@ -7,7 +7,7 @@ import pytest
 from c4d_core.config import load_config
 from c4d_core.errors import UserError
 from c4d_core.geometry import pixel_grid
-from c4d_pipeline.flow import build_flow, compose_flows
+from c4d_pipeline.flow import build_flow, compose_flows, fuse_flows
 from c4d_pipeline.ground_truth import resize_nearest
 from tests.synthetic_scenes import make_box_scene
 from datagen.generate import generate_scene
@@ -134,10 +134,27 @@ def test_flows_compose_exactly_where_they_are_affine():
     assert np.abs(compose_flows(rotation, back)[inside]).max() < 1e-3
 
 
+def test_fusion_takes_per_pixel_the_flow_that_matches_the_frames():
+    """Frame j = frame i shifted by (3, -2) px; candidates: the right shift on the left half and a
+    wrong one on the right half, and the reverse. The fused flow is the right shift away from the
+    seam (whose 7x7 patches mix both)."""
+    frames = _drifting_texture((3.0, -2.0), 2, height=48, width=80)
+    right = np.broadcast_to(np.array([3.0, -2.0], np.float32), (48, 80, 2))
+    wrong = right + np.array([5.0, 4.0], np.float32)
+    left_half = np.zeros((48, 80, 1), bool)
+    left_half[:, :40] = True
+    first, second = np.where(left_half, right, wrong), np.where(left_half, wrong, right)
+    fused = fuse_flows(frames[0], frames[1], [first, second])
+    inner = (slice(8, -8), np.r_[8:36, 44:72])  # away from the image's edges and the seam
+    np.testing.assert_array_equal(fused[inner], right[inner])
+    assert fused.dtype == np.float32 and fused.shape == (48, 80, 2)
+
+
 def test_chained_dis_follows_a_large_displacement_that_one_search_loses():
     """Content drifting 7 px a frame: frames 0 and 6 lie 42 px apart, beyond DIS's search on
-    64x96 frames; the chain of six 7-px steps finds it. Consecutive pairs are searched directly,
-    so they equal plain DIS's to the bit (the motion masks read only those)."""
+    64x96 frames; the chain of six 7-px steps, fused with the failed search, finds it. Consecutive
+    pairs are searched directly, so they equal plain DIS's to the bit (the motion masks read only
+    those)."""
     frames = _drifting_texture((7.0, 0.0), 7, width=128)
     pairs = [(0, 6), (6, 0), (0, 1), (3, 4), (2, 5)]
     chained = build_flow("dis:medium+chain").flow(frames, pairs)
