@@ -150,8 +150,9 @@ class DISFlow:
     frames upsampled `upsample` times: the flow (Hu,Wu,2) there is averaged over each block of
     upsample x upsample pixels (a frame pixel) and divided by `upsample`. With `chain`, a pair more
     than one frame apart fuses its own search with the consecutive searches composed (at the
-    upsampled size; see the module doc); those steps are kept only while a pair still needs them,
-    so memory does not grow with the video."""
+    upsampled size; see the module doc); each composition is made once for all the pairs from one
+    frame, and a step is kept only while a pair still needs it, so memory does not grow with the
+    video."""
 
     def __init__(self, preset: str = "medium", upsample: int = 1, chain: bool = False):
         if preset not in DIS_PRESETS:
@@ -171,21 +172,33 @@ class DISFlow:
             return flow if n == 1 else cv2.resize(flow, (width, height), interpolation=cv2.INTER_AREA) / n
 
         out = np.zeros((len(pairs), height, width, 2), np.float32)  # (P,H,W,2)
-        steps: dict[tuple[int, int], np.ndarray] = {}  # chain: (t, t +- 1) -> (H*n,W*n,2) step flow
-        for p in sorted(range(len(pairs)), key=lambda p: min(pairs[p])):  # chain: steps freed in order
-            i, j = (int(f) for f in pairs[p])
-            searched = dis.calc(grey[i], grey[j], None)  # (H*n,W*n,2) pixels of the upsampled frames
-            if not self.chain or abs(j - i) == 1:
-                out[p] = to_frames(searched)
-                continue
-            for key in [key for key in steps if min(key) < min(i, j)]:  # no later pair needs it
+        if not self.chain:
+            for p, (i, j) in enumerate(pairs):
+                out[p] = to_frames(dis.calc(grey[int(i)], grey[int(j)], None))  # from (H*n,W*n,2)
+            return out
+        # chain: the pairs from one frame in one direction form a sweep, which composes the steps
+        # once out to its farthest pair and fuses each pair on the way; sweeps run in the order of
+        # the earliest frame they touch, so a step no later sweep needs is freed.
+        sweeps: dict[tuple[int, int], dict[int, int]] = {}  # (start, +-1) -> {end: pair index}
+        for p, (i, j) in enumerate(pairs):
+            sweeps.setdefault((int(i), 1 if j > i else -1), {})[int(j)] = p
+        steps: dict[tuple[int, int], np.ndarray] = {}  # (t, t +- 1) -> (H*n,W*n,2) step flow
+        for (i, step), ends in sorted(sweeps.items(), key=lambda sweep: min(sweep[0][0], *sweep[1])):
+            for key in [key for key in steps if min(key) < min(i, *ends)]:  # no later sweep needs it
                 del steps[key]
-            step = 1 if j > i else -1
-            for t in range(i, j, step):
+            farthest = max(ends, key=lambda j: abs(j - i))
+            chained = None  # (H*n,W*n,2) the flow i -> t, the steps composed
+            for t in range(i, farthest, step):
                 if (t, t + step) not in steps:
                     steps[(t, t + step)] = dis.calc(grey[t], grey[t + step], None)
-            chained = steps[(i, i + step)]
-            for t in range(i + step, j, step):  # i -> t, then t -> t + step
-                chained = compose_flows(chained, steps[(t, t + step)]).astype(np.float32)
-            out[p] = fuse_flows(frames[i], frames[j], [to_frames(searched), to_frames(chained)])
+                chained = steps[(t, t + step)] if chained is None else \
+                    compose_flows(chained, steps[(t, t + step)]).astype(np.float32)
+                j = t + step
+                if j not in ends:
+                    continue
+                if j == i + step:  # consecutive frames: the search itself
+                    out[ends[j]] = to_frames(chained)
+                else:
+                    searched = dis.calc(grey[i], grey[j], None)
+                    out[ends[j]] = fuse_flows(frames[i], frames[j], [to_frames(searched), to_frames(chained)])
         return out
