@@ -114,13 +114,14 @@ def sample_flow(flow: np.ndarray, xy: np.ndarray) -> np.ndarray:
 FUSION_PATCH = 7  # pixels: the side of the patch whose colour difference picks a pixel's flow
 
 
-def warp_back(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
-    """`image` (H,W,C) of frame j sampled where the flow i -> j (H,W,2) lands each pixel of frame i
-    (bilinear, edges replicated): frame j seen from frame i, float32 (H,W,C)."""
+def warp_back(image: np.ndarray, flow: np.ndarray, border: int = cv2.BORDER_REPLICATE) -> np.ndarray:
+    """`image` (H,W) or (H,W,C) of frame j sampled where the flow i -> j (H,W,2) lands each pixel
+    of frame i (bilinear; outside the image `border`, an OpenCV border mode: edges replicated, or
+    cv2.BORDER_CONSTANT for 0): frame j seen from frame i, float32 of the image's shape."""
     height, width = flow.shape[:2]
-    landing = pixel_grid(height, width).astype(np.float32) + flow  # (H,W,2)
+    landing = (pixel_grid(height, width) + flow).astype(np.float32)  # (H,W,2) where the pixels land
     return cv2.remap(image.astype(np.float32), landing[..., 0], landing[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE)
+                     borderMode=border)
 
 
 def fuse_flows(source: np.ndarray, target: np.ndarray, candidates: Sequence[np.ndarray],
@@ -139,10 +140,9 @@ def fuse_flows(source: np.ndarray, target: np.ndarray, candidates: Sequence[np.n
 def compose_flows(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """The flow i -> k (H,W,2) of the flows i -> j `first` (H,W,2) and j -> k `second` (H,W,2):
     first(x) + second(x + first(x)), the second sampled bilinearly where the first lands (edges
-    replicated). With second = the flow j -> i it is the forward-backward residual."""
-    height, width = first.shape[:2]
-    landing = (pixel_grid(height, width) + first).reshape(-1, 2)  # (H*W,2) where each pixel lands
-    return first + sample_flow(second, landing).reshape(height, width, 2)
+    replicated), summed in float64. With second = the flow j -> i it is the forward-backward
+    residual."""
+    return np.add(first, warp_back(second, first), dtype=np.float64)
 
 
 class DISFlow:

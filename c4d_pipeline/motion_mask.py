@@ -60,7 +60,7 @@ from c4d_core.config import defaults_from
 from c4d_core.epipolar import fundamental_lmeds, sampson_distance
 from c4d_core.errors import UserError
 from c4d_core.geometry import pixel_grid, project, unproject_depth_map
-from c4d_pipeline.flow import compose_flows, sample_flow
+from c4d_pipeline.flow import compose_flows, sample_flow, warp_back
 
 log = logging.getLogger(__name__)
 Pair = tuple[int, int]
@@ -206,16 +206,13 @@ def refine_masks(masks: np.ndarray, flows: np.ndarray, index: dict[Pair, int], f
     """Step 6 of the module doc: masks bool (T,H,W) voted over `temporal_neighbours` frames on
     each side through flows (P,H,W,2) (index: pair (t, t') -> its row), smoothed by a guided
     filter on frames uint8 (T,H,W,3) when `guided_radius_px` > 0, kept where >= `min_vote`."""
-    num_frames, height, width = masks.shape
-    grid = pixel_grid(height, width).astype(np.float32)  # (H,W,2)
+    num_frames = masks.shape[0]
     refined = np.zeros_like(masks)
     for t in range(num_frames):
         votes, voters = masks[t].astype(np.float32), 1  # (H,W) dynamic votes, frames voting
         for other in range(t - cfg.temporal_neighbours, t + cfg.temporal_neighbours + 1):
             if other != t and (t, other) in index:  # frame t' seen from t through the flow t -> t'
-                landing = grid + flows[index[(t, other)]]  # (H,W,2) where t's pixels land in t'
-                votes += cv2.remap(masks[other].astype(np.float32), landing[..., 0], landing[..., 1],
-                                   cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                votes += warp_back(masks[other], flows[index[(t, other)]], cv2.BORDER_CONSTANT)
                 voters += 1
         score = votes / voters  # (H,W) in [0, 1]
         if cfg.guided_radius_px > 0:
