@@ -2,7 +2,8 @@
 
 For every scene and static-world-bias setting, the same inputs (ground-truth pointmaps with noise,
 optical flow, C4D motion masks from the oracle tracker's mobility + flow, the scene's 2-D tracks
-for PTS) go through the variants of configs/c4d/ablation/objectives.yaml (the table's rows and
+for PTS; with `--tracker CKPT` a trained DynPT's tracks and mobility instead of the oracle's, as
+`c4d run` and `c4d demo` use them) go through the variants of configs/c4d/ablation/objectives.yaml (the table's rows and
 their c4d config overrides):
   GA only   stage 1 with GA alone, no stage 2 (DUSt3R-style global alignment)
   w/o CMA   GA + CTS, then PTS
@@ -14,8 +15,8 @@ delta < 1.25 (per-sequence scale-and-shift alignment). Results are cached per (s
 OUT/runs/ so an interrupted run resumes; OUT/ablation.json and OUT/ablation.md hold the tables.
 
     python -m c4d_pipeline.ablation [--dynamic DIR] [--static DIR] --out OUT [--size 64]
-        [--stride S] [--frames N] [--preset default] [--flow gt] [--bias on,off]
-        [--variants "GA only,w/o CMA,w/o CTS,C4D"] [key=value ...]
+        [--stride S] [--frames N] [--preset default] [--flow gt] [--masks c4d|gt] [--tracker CKPT]
+        [--bias on,off] [--variants "GA only,w/o CMA,w/o CTS,C4D"] [key=value ...]
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from c4d_pipeline.eval_metrics import depth_metrics, mask_iou, pose_metrics
 from c4d_pipeline.flow import build_flow
 from c4d_pipeline.ground_truth import (ground_truth_motion_masks, oracle_tracks, resize_intrinsics,
                                        resize_nearest)
-from c4d_pipeline.motion_mask import MotionMaskConfig, correspondence_motion_masks
+from c4d_pipeline.motion_mask import MotionMaskConfig, correspondence_motion_masks, track_arrays
 from c4d_pipeline.optimize import optimise
 from c4d_pipeline.pointmap_sources import build_pointmaps
 from c4d_pipeline.scene_graph import graph_from_config
@@ -113,11 +114,12 @@ def scores(result_depth, cam_to_world, scene: Scene) -> dict[str, float]:
 
 
 def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, flow_spec: str,
-                 masks_from: str, variants=tuple(RUNS)) -> dict:
+                 masks_from: str, variants=tuple(RUNS), tracker=None) -> dict:
     """Scores of the variants on one scene: {variant: {metric: value}, 'mask_iou': ...}.
 
     preset/overrides: the c4d config every variant starts from (each adds its weight overrides);
-    variants: the stage-1 runs (keys of RUNS) to make.
+    variants: the stage-1 runs (keys of RUNS) to make; tracker: a `dynpt.inference.Tracker` whose
+    tracks and mobility make the C4D masks and feed PTS (None: the oracle, the scene's truth).
     """
     cfg = load_config("c4d", preset, overrides=[*overrides, f"gt_pointmaps.static_bias={json.dumps(bias)}"])
     num_frames = scene.num_frames
@@ -126,7 +128,8 @@ def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, fl
     pairs = [tuple(map(int, e)) for e in edges]
     pw = build_pointmaps("gt", cfg, scene=scene).pointmaps(scene.rgb, edges)
     flows = build_flow(flow_spec, scene=scene).flow(scene.rgb, pairs)
-    tracks = oracle_tracks(scene)
+    tracks = oracle_tracks(scene) if tracker is None else tracker.track(scene.rgb)
+    arrays = track_arrays(tracks)  # (T,N,2) tracks, (T,N) visible, ... as numpy
     gt_masks = ground_truth_motion_masks(scene)
     if masks_from == "gt":
         masks = gt_masks
@@ -141,7 +144,7 @@ def ablate_scene(scene: Scene, preset: str, overrides: list[str], bias: bool, fl
         run_cfg = load_config("c4d", preset, overrides=list(overrides) + variant)
         start = time.perf_counter()
         res = optimise(pw, num_frames, run_cfg, flows=flows, static_masks=~masks,
-                       tracks=tracks.tracks, visible=tracks.visible)
+                       tracks=arrays["tracks"], visible=arrays["visible"])
         out["seconds"][name] = time.perf_counter() - start
         out["optimiser_seconds"][name] = res.history["seconds"]  # per part: init, stage1, ...
         out[name] = scores(res.depth, res.cam_to_world, scene)
@@ -169,6 +172,26 @@ def markdown(tables: dict, counts: dict) -> str:
     return "\n".join(lines)
 
 
+# the arguments that change a scene's cached run (OUT/runs/*.json); the others choose which runs
+SETTINGS = ("dynamic", "static", "size", "stride", "frames", "preset", "flow", "masks", "tracker", "overrides")
+
+
+def check_settings(out: Path, args: argparse.Namespace) -> None:
+    """Record the settings of the runs cached in `out` (OUT/settings.json) on the first call and
+    refuse other settings later: a resumed ablation never mixes runs made two ways."""
+    settings = {key: getattr(args, key) for key in SETTINGS}
+    path = out / "settings.json"
+    if not path.is_file():
+        write_json(path, settings, indent=1)
+        return
+    before = json.loads(path.read_text())
+    changed = [key for key in SETTINGS if before.get(key) != settings[key]]
+    if changed:
+        was = ", ".join(f"{key} {before.get(key)!r}, now {settings[key]!r}" for key in changed)
+        raise UserError(f"{out} holds runs made with other settings ({was}); give another --out, "
+                        "or the same settings to resume")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m c4d_pipeline.ablation", description=__doc__.split("\n\n")[0])
     parser.add_argument("--dynamic", help="shards of dynamic scenes (datagen output)")
@@ -184,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="default", help="c4d config preset or YAML")
     parser.add_argument("--flow", default="gt", help="flow estimator: gt | dis[:PRESET] | raft:PATH")
     parser.add_argument("--masks", default="c4d", choices=("c4d", "gt"), help="motion masks used by CMA")
+    parser.add_argument("--tracker", default=None, metavar="CKPT",
+                        help="DynPT checkpoint (c4d train) whose tracks and mobility make the c4d masks and "
+                        "feed PTS (default: the oracle, each scene's true tracks and mobility)")
     parser.add_argument("--bias", default="on,off", help="static-world bias settings to run")
     parser.add_argument("--variants", default=",".join(RUNS),
                         help="comma-separated stage-1 runs out of " + ", ".join(RUNS)
@@ -207,8 +233,13 @@ def main(argv: list[str] | None = None) -> int:
     variants = [v.strip() for v in args.variants.split(",")]
     if not set(variants) <= set(RUNS):
         raise UserError(f"--variants takes names out of {', '.join(RUNS)}; got {args.variants!r}")
+    tracker = None
+    if args.tracker is not None:
+        from dynpt.inference import load_tracker
+        tracker = load_tracker(args.tracker)
     out = Path(args.out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
+    check_settings(out, args)
     runs, groups = {}, {}
     for group, source in (("dynamic", args.dynamic), ("static", args.static)):
         if not source:
@@ -227,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
                 else:
                     log.info("%s: %d frames %dx%d", key, scene.num_frames, *scene.image_size)
                     runs[key] = ablate_scene(scene, args.preset, list(args.overrides), bias == "on",
-                                             args.flow, args.masks, variants)
+                                             args.flow, args.masks, variants, tracker)
                     write_json(path, runs[key], indent=1)
                     log.info("%s: ATE %s", key, ", ".join(
                         f"{v} {runs[key][v]['ate']:.4f}" for v in VARIANTS if v in runs[key]))

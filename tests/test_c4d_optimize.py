@@ -148,6 +148,49 @@ def test_ablation_runs_every_variant_on_one_scene():
     assert 0 <= out["mask_iou"] <= 1
 
 
+def test_the_ablation_masks_and_pts_tracks_come_from_a_given_trained_tracker(tmp_path):
+    """`--tracker CKPT`: the C4D masks are made from that tracker's tracks and mobility (here a
+    tiny random-weight DynPT) and PTS follows its tracks, not the oracle's."""
+    from c4d_pipeline.ablation import ablate_scene, resize_scene
+    from c4d_pipeline.eval_metrics import mask_iou
+    from c4d_pipeline.motion_mask import MotionMaskConfig, correspondence_motion_masks
+    from dynpt.checkpoint import save_checkpoint
+    from dynpt.inference import load_tracker
+    from dynpt.model import build_model
+
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(tmp_path / "dynpt_tiny.pt", build_model(load_config("dynpt/model", "tiny").model), step=0)
+    tracker = load_tracker(ckpt)
+    scene = resize_scene(make_box_scene(num_frames=6, height=24, width=32, num_tracks=48, seed=2), 32)
+    fast = ["graph.window=2", "optim.stage1_iters=3", "optim.stage2_iters=2", "pts.window=3", "pts.extend=1"]
+    out = ablate_scene(scene, "tiny", fast, True, "gt", "c4d", ("GA only", "C4D"), tracker)
+    cfg = load_config("c4d", "tiny", overrides=fast)
+    pairs = [tuple(map(int, e)) for e in graph_from_config(scene.num_frames, cfg.graph)]
+    flows = build_flow("gt", scene=scene).flow(scene.rgb, pairs)
+    expected = correspondence_motion_masks(tracker.track(scene.rgb), flows, pairs,
+                                           MotionMaskConfig(**dict(cfg.motion_mask.c4d)), scene.rgb).masks
+    oracle = ablate_scene(scene, "tiny", fast, True, "gt", "c4d", ("GA only", "C4D"))
+    assert out["mask_iou"] == mask_iou(expected, ground_truth_motion_masks(scene))["iou"]
+    assert out["GA only"] == oracle["GA only"]  # GA only reads neither masks nor tracks
+    assert np.isfinite(out["C4D"]["ate"]) and out["C4D"] != oracle["C4D"]  # PTS smooths along the tracker's tracks
+
+
+def test_a_resumed_ablation_refuses_other_settings(tmp_path):
+    """The runs cached in OUT/runs/ were made with OUT/settings.json's settings; resuming with
+    another flow, preset, tracker, ... is one clear error, not a table mixing both."""
+    import argparse
+
+    from c4d_pipeline.ablation import SETTINGS, check_settings
+
+    args = argparse.Namespace(**{key: None for key in SETTINGS})
+    args.flow, args.preset, args.overrides = "dis", "demo", ["cma.max_px=50"]
+    check_settings(tmp_path, args)
+    check_settings(tmp_path, args)  # the same settings: resumes
+    args.overrides = []
+    with pytest.raises(UserError, match=r"other settings \(overrides \['cma.max_px=50'\], now \[\]\)"):
+        check_settings(tmp_path, args)
+
+
 def test_the_ablation_takes_every_stride_th_frame_and_requeries_tracks_on_kept_frames():
     from c4d_pipeline.ablation import resize_scene
 
