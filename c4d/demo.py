@@ -14,7 +14,8 @@
    with GA only, and score both against the truth;
 5. draw the pictures (dataset report, track overlay, reconstruction report).
 Each step writes OUT/<step>/ and a record OUT/<step>/done.json; a step whose record exists is
-skipped, so re-running the command resumes. OUT/summary.md gathers every number and file. The
+skipped, so re-running the command resumes (refused into a folder of another demo config, or past
+reconstructions made with other C4D settings than `recon.config` gives now). OUT/summary.md gathers every number and file. The
 records name files relative to OUT, so a moved or copied OUT resumes from its own files (an
 older record's absolute or working-directory-relative paths are found inside OUT by their tail).
 """
@@ -34,7 +35,7 @@ import numpy as np
 import yaml
 
 from c4d.cli import run_subcommand
-from c4d_core.config import load_config, to_dict, to_yaml
+from c4d_core.config import changed_keys, load_config, to_dict, to_yaml
 from c4d_core.errors import UserError
 from c4d_core.files import write_json, write_text
 from c4d_core.ownership import output_folder
@@ -107,6 +108,27 @@ class Demo:
             raise UserError(f"{self.out} holds a demo made with another config; use another --out "
                             f"or delete the folder (see {record})")
         write_text(record, to_yaml(self.cfg))
+
+    def check_reconstruction_settings(self, record: dict) -> None:
+        """Refuse to go on from a reconstruct step made with other C4D settings than
+        `recon.config` gives now (a c4d config file, whose values `claim_folder`'s record does not
+        hold; a newer checkout may ship others): the reconstructions, their pictures and the
+        summary would describe settings the command no longer runs. Read from the C4D run's own
+        report of the first scene, which every demo folder has."""
+        from c4d_pipeline.ablation import RUNS
+
+        r = self.cfg.recon
+        report = self.located(record["outputs"]["scene-000"]["C4D"]) / "report.json"
+        made = json.loads(report.read_text())["config"]
+        now = json.loads(json.dumps(to_dict(load_config("c4d", r.config, overrides=[*r.overrides, *RUNS["C4D"]]))))
+        changed = changed_keys(made, now)
+        if changed:
+            shown = ", ".join(f"{key} {_dotted(made, key)!r} -> {_dotted(now, key)!r}" for key in changed[:4])
+            more = f" and {len(changed) - 4} more" if len(changed) > 4 else ""
+            raise UserError(f"{self.out / 'reconstruct'} was made with other C4D settings than "
+                            f"recon.config {r.config!r} gives now ({shown}{more}); delete "
+                            f"{self.out / 'reconstruct'} and {self.out / 'pictures'} to redo those "
+                            "steps with them, or use another --out")
 
     def run_step(self, name: str, step: Callable[[Path], dict]) -> dict:
         folder = self.out / name
@@ -251,6 +273,13 @@ class Demo:
                 "track_overlay": self.stored(folder / "tracks" / "overlay.mp4"),
                 "readme_pictures": f"{self.stored(readme)}/{{dataset_sheet,tracks,trajectory}}.png",
                 "scene": f"{self.stored(recon_source)} #0 (the first reconstructed scene)"}
+
+
+def _dotted(nested: dict, key: str):
+    """The value at a dotted key of a plain config (None where it has no such key)."""
+    for part in key.split("."):
+        nested = nested.get(part) if isinstance(nested, dict) else None
+    return nested
 
 
 def readme_pictures(pictures: Path) -> Path:
@@ -491,6 +520,7 @@ def _run_demo(demo: Demo) -> int:
     records["recon-data"] = demo.run_step("recon-data", demo.recon_data)
     recon_source = demo.located(records["recon-data"]["source"])
     records["reconstruct"] = demo.run_step("reconstruct", lambda f: demo.reconstruct(f, checkpoint, recon_source))
+    demo.check_reconstruction_settings(records["reconstruct"])
     recon_dir = str(demo.located(records["reconstruct"]["outputs"]["scene-000"]["C4D"]))
     records["pictures"] = demo.run_step("pictures", lambda f: demo.pictures(f, recon_dir, checkpoint, recon_source))
     summary = write_text(demo.out / "summary.md", summary_markdown(records))

@@ -340,8 +340,8 @@ def training_config(group: str, args) -> DictConfig:
     resumed = load_config(group, saved, overrides=[*args.overrides,
                                                    f"train.out_dir={json.dumps(str(out_dir))}"])
     if args.config is not None:
-        own = _changed_keys(to_dict(_root(group)), to_dict(load_config(group, args.config)))
-        ignored = set(_changed_keys(to_dict(chosen), to_dict(resumed)))
+        own = changed_keys(to_dict(_root(group)), to_dict(load_config(group, args.config)))
+        ignored = set(changed_keys(to_dict(chosen), to_dict(resumed)))
         contradicted = [key for key in own if key in ignored]
         if contradicted:
             raise UserError(f"--resume continues the run in {out_dir} with its saved config.yaml, "
@@ -351,11 +351,11 @@ def training_config(group: str, args) -> DictConfig:
     return resumed
 
 
-def _changed_keys(old: Any, new: Any, prefix: str = "") -> list[str]:
+def changed_keys(old: Any, new: Any, prefix: str = "") -> list[str]:
     """The dotted keys whose values differ between two plain configs (`to_dict`), sorted."""
     if isinstance(old, dict) and isinstance(new, dict):
         return [changed for key in sorted(old.keys() | new.keys(), key=str)
-                for changed in _changed_keys(old.get(key), new.get(key), f"{prefix}{key}.")]
+                for changed in changed_keys(old.get(key), new.get(key), f"{prefix}{key}.")]
     return [] if old == new else [prefix[:-1]]
 
 

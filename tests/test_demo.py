@@ -76,6 +76,26 @@ def test_another_config_into_the_same_folder_is_refused(demo_out, capsys):
     assert "another config" in capsys.readouterr().err
 
 
+def test_a_reconstruct_step_made_with_other_c4d_settings_is_refused(demo_out, tmp_path, capsys):
+    """The C4D settings come from configs/c4d/<recon.config>.yaml, which the folder's demo config
+    record does not hold: a checkout that ships other ones must not go on to pictures and a
+    summary of reconstructions made with the old ones (read from the C4D run's report)."""
+    import shutil
+
+    out = tmp_path / "demo"
+    shutil.copytree(demo_out, out)
+    report = out / "reconstruct" / "scene-000" / "c4d" / "report.json"
+    record = json.loads(report.read_text())
+    record["config"]["cma"]["max_px"] = 50.0  # as made before ddab03d
+    report.write_text(json.dumps(record))
+    summary = (out / "summary.md").read_bytes()
+    assert main(["demo", "--quick", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "other C4D settings" in err and "(cma.max_px 50.0 -> 20.0)" in err and "Traceback" not in err
+    assert f"delete {out / 'reconstruct'} and {out / 'pictures'}" in err
+    assert (out / "summary.md").read_bytes() == summary  # nothing rewritten
+
+
 def test_verdict_says_yes_only_when_every_val_set_is_above_the_baseline():
     from c4d.demo import _tracker_verdict
 
