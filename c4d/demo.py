@@ -115,12 +115,10 @@ class Demo:
         hold; a newer checkout may ship others): the reconstructions, their pictures and the
         summary would describe settings the command no longer runs. Read from the C4D run's own
         report of the first scene, which every demo folder has."""
-        from c4d_pipeline.ablation import RUNS
-
         r = self.cfg.recon
         report = self.located(record["outputs"]["scene-000"]["C4D"]) / "report.json"
         made = json.loads(report.read_text())["config"]
-        now = json.loads(json.dumps(to_dict(load_config("c4d", r.config, overrides=[*r.overrides, *RUNS["C4D"]]))))
+        now = json.loads(json.dumps(to_dict(self.recon_config("C4D"))))  # as report.json holds it
         changed = changed_keys(made, now)
         if changed:
             shown = ", ".join(f"{key} {_dotted(made, key)!r} -> {_dotted(now, key)!r}" for key in changed[:4])
@@ -129,6 +127,14 @@ class Demo:
                             f"recon.config {r.config!r} gives now ({shown}{more}); delete "
                             f"{self.out / 'reconstruct'} and {self.out / 'pictures'} to redo those "
                             "steps with them, or use another --out")
+
+    def recon_config(self, variant: str):
+        """The c4d config of one reconstruction variant (a row of the ablation table: "C4D",
+        "GA only"): `recon.config` with `recon.overrides`, then the variant's own."""
+        from c4d_pipeline.ablation import RUNS
+
+        r = self.cfg.recon
+        return load_config("c4d", r.config, overrides=[*r.overrides, *RUNS[variant]])
 
     def run_step(self, name: str, step: Callable[[Path], dict]) -> dict:
         folder = self.out / name
@@ -221,7 +227,6 @@ class Demo:
 
     # -- 4b. reconstruct
     def reconstruct(self, folder: Path, checkpoint: str, source: Path) -> dict:
-        from c4d_pipeline.ablation import RUNS
         from c4d_pipeline.eval_recon import evaluate
         from c4d_pipeline.flow import build_flow
         from c4d_pipeline.outputs import read_reconstruction
@@ -246,7 +251,7 @@ class Demo:
             # the same pointmaps and flow for both runs, computed once
             pointmaps, flow = Reused(build_pointmaps("gt", base, scene=scene)), Reused(build_flow(r.flow))
             for variant in ("C4D", "GA only"):  # rows of the ablation table (their overrides)
-                cfg = load_config("c4d", r.config, overrides=[*r.overrides, *RUNS[variant]])
+                cfg = self.recon_config(variant)
                 target = folder / name / variant.lower().replace(" ", "-")
                 reconstruct(scene.rgb, pointmaps, flow, track_result, cfg, target,
                             inputs={"scene": f"{source} #{index}",
